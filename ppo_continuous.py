@@ -412,9 +412,9 @@ def train(args):
         torch.set_rng_state(checkpoint["torch_rng_state"])
         print(f"resuming {run_dir} at step {global_step:,} (iteration {checkpoint['iteration']}/{num_iterations})")
 
-    # purge_step drops events logged after the checkpoint by an interrupted run, so the
-    # TensorBoard curve continues from the checkpoint's step without a fold.
-    writer = SummaryWriter(run_dir, purge_step=global_step if checkpoint is not None else None)
+    # purge_step drops the events an interrupted run logged after its checkpoint's step, so the
+    # TensorBoard curve continues from that step without a fold.
+    writer = SummaryWriter(run_dir, purge_step=global_step + 1 if checkpoint is not None else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items()))
 
     # Rollout storage. The buffers are numpy arrays: writing a row costs well under 1 us, against

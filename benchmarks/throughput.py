@@ -1,0 +1,222 @@
+"""Steps per second of our scripts beside their peers, measured side by side in one run.
+
+    pip install -r benchmarks/requirements.txt
+    python benchmarks/throughput.py                 # about 3 minutes on a 2-core CPU
+
+Every measurement runs in a fresh process, one at a time, and the cases are repeated in
+alternation (ours, peer, env, ours, peer, env, ...) so that a slow spell of the machine hits all of
+them alike. The table reports the median steps/s of each and the ratios, and is written to
+benchmarks/results/throughput.md together with the command, commit, versions and machine.
+
+What is timed, for each case, is the learning itself on identical settings, after imports and
+model construction:
+- ours: `train(args)` of the script, rollout + update + TensorBoard logging + checkpointing;
+- the peer: `model.learn()` of Stable-Baselines3's PPO with the same hyperparameters, network,
+  normalization (VecNormalize) and 1 torch thread;
+- env: the environment alone, stepped with random actions: the ceiling for any agent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results" / "throughput.md"
+
+# A suite: its env, our scripts, and their peer. Each run also measures the env alone.
+SUITES = {
+    "mujoco": {"env_id": "Hopper-v5", "ours": ["ppo_continuous.py", "ppo_kl_penalty.py"], "peer": "sb3_ppo_mujoco"},
+}
+
+
+# WORKERS: each runs in its own process and prints one JSON line {"sps": ...}.
+
+
+def warm_up_torch():
+    # One-off costs that are not learning: the first fused Adam loads its kernels (about 1 s).
+    import torch
+
+    torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], fused=True)
+
+
+def measure_ours(script, env_id, steps):
+    import importlib.util
+
+    import torch
+
+    spec = importlib.util.spec_from_file_location(script[:-3], ROOT / script)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    import gymnasium  # noqa: F401  (imports are not timed, as for the peer)
+    from torch.utils.tensorboard import SummaryWriter  # noqa: F401
+
+    warm_up_torch()
+    with tempfile.TemporaryDirectory() as tmp:
+        args = module.Args(env_id=env_id, total_timesteps=steps, run_dir=tmp, seed=1)
+        module.check_args(args)
+        torch.set_num_threads(1)
+        start = time.perf_counter()
+        module.train(args)
+        return steps / (time.perf_counter() - start)
+
+
+def measure_sb3_ppo_mujoco(env_id, steps):
+    import gymnasium as gym
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    torch.set_num_threads(1)  # as ours; SB3's default of all threads is no faster for 64x64 MLPs
+    envs = VecNormalize(DummyVecEnv([lambda: gym.make(env_id)]), gamma=0.99)
+    model = PPO(
+        "MlpPolicy", envs, n_steps=2048, batch_size=64, n_epochs=10,
+        learning_rate=lambda progress_remaining: 3e-4 * progress_remaining,
+        gamma=0.99, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5,
+        policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=torch.nn.Tanh, log_std_init=0.0),
+        device="cpu", seed=1, verbose=0,
+    )  # fmt: skip
+    start = time.perf_counter()
+    model.learn(total_timesteps=steps)
+    return steps / (time.perf_counter() - start)
+
+
+def measure_env(env_id, steps):
+    import gymnasium as gym
+
+    env = gym.make(env_id)
+    env.reset(seed=1)
+    env.action_space.seed(1)
+    start = time.perf_counter()
+    for _ in range(steps):
+        _, _, term, trunc, _ = env.step(env.action_space.sample())
+        if term or trunc:
+            env.reset()
+    return steps / (time.perf_counter() - start)
+
+
+def run_worker(case, env_id, steps):
+    if case.endswith(".py"):
+        sps = measure_ours(case, env_id, steps)
+    elif case == "sb3_ppo_mujoco":
+        sps = measure_sb3_ppo_mujoco(env_id, steps)
+    elif case == "env":
+        sps = measure_env(env_id, steps)
+    else:
+        raise ValueError(case)
+    print(json.dumps({"sps": sps}))
+
+
+# ORCHESTRATION
+
+
+def measure(case, env_id, steps):
+    cmd = [sys.executable, __file__, "--worker", case, "--env-id", env_id, "--steps", str(steps)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode != 0:
+        raise SystemExit(f"{case} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])["sps"]
+
+
+def versions():
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"python": platform.python_version()}
+    for package in ["torch", "numpy", "gymnasium", "mujoco", "stable-baselines3"]:
+        try:
+            out[package] = version(package)
+        except PackageNotFoundError:
+            out[package] = "not installed"
+    return out
+
+
+def machine():
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}"
+
+
+def commit():
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--", "*.py"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    return rev + (" (with uncommitted changes)" if dirty else "")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--suite", choices=sorted(SUITES), default="mujoco")
+    parser.add_argument("--steps", type=int, default=10240, help="env steps per measurement (5 iterations of 2048)")
+    parser.add_argument("--repeats", type=int, default=3, help="measurements of each case, taken in alternation")
+    parser.add_argument("--no-write", action="store_true", help="print the table but do not write the results file")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    parser.add_argument("--env-id", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        return run_worker(args.worker, args.env_id, args.steps)
+    if args.steps <= 0 or args.repeats <= 0:
+        parser.error("--steps and --repeats must be positive")
+
+    suite = SUITES[args.suite]
+    env_id = suite["env_id"]
+    ours = [s for s in suite["ours"] if (ROOT / s).exists()]
+    cases = [*ours, suite["peer"], "env"]
+    samples = {case: [] for case in cases}
+    total, done, start = len(cases) * args.repeats, 0, time.time()
+    for repeat in range(args.repeats):
+        for case in cases:
+            sps = measure(case, env_id, args.steps)
+            samples[case].append(sps)
+            done += 1
+            eta = (time.time() - start) / done * (total - done)
+            print(f"[{done}/{total}] {case:<20} {sps:8.0f} steps/s   (ETA {eta:4.0f} s)", flush=True)
+
+    median = {case: statistics.median(v) for case, v in samples.items()}
+    peer, env = median[suite["peer"]], median["env"]
+    command = "python benchmarks/throughput.py " + " ".join(sys.argv[1:])
+    lines = [
+        f"# Throughput: {args.suite} ({env_id})",
+        "",
+        "Generated by `benchmarks/throughput.py`; do not edit by hand.",
+        "",
+        "| case | median steps/s | samples | ratio to peer | fraction of env-only |",
+        "|---|---|---|---|---|",
+    ]
+    for case in cases:
+        ratio = f"{median[case] / peer:.2f}x"
+        lines.append(f"| {case} | {median[case]:.0f} | {', '.join(f'{s:.0f}' for s in samples[case])} | {ratio} | {median[case] / env:.2f} |")
+    lines += [
+        "",
+        f"- Settings: {env_id}, 1 env, T=2048, K=10 epochs, minibatch 64, 64x64 tanh MLPs, 1 torch thread;"
+        f" {args.steps:,} steps per measurement, {args.repeats} measurements of each case, in alternation; the median is shown.",
+        f"- Peer: `{suite['peer']}` is Stable-Baselines3's PPO with the same hyperparameters and VecNormalize.",
+        f"- Command: `{command.strip()}`",
+        f"- Commit: {commit()}; date: {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
+        f"- Versions: {', '.join(f'{k} {v}' for k, v in versions().items())}",
+        f"- Machine: {machine()}",
+    ]
+    table = "\n".join(lines) + "\n"
+    print("\n" + table)
+    if not args.no_write:
+        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+        RESULTS.write_text(table)
+        print(f"wrote {RESULTS.relative_to(ROOT)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,70 @@
+"""Shared fixtures: every check written once and run over every ppo_*.py script that exists."""
+
+import functools
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPTS = sorted(p.name for p in ROOT.glob("ppo_*.py"))
+
+# How to run each script on a tiny budget: an env it accepts, a few hundred steps with a small
+# batch, and an env it must reject for its action space. A new script must add its line here, or
+# test_every_script_is_configured fails.
+TINY = {
+    "ppo_continuous.py": {
+        "env_id": "Hopper-v5",
+        "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128"],
+        "wrong_action_space_env": "CartPole-v1",
+    },
+    "ppo_kl_penalty.py": {
+        "env_id": "Hopper-v5",
+        "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128"],
+        "wrong_action_space_env": "CartPole-v1",
+    },
+}
+
+
+@functools.cache
+def load_script(name):
+    """Import a script by file name, as a module, without running its __main__."""
+    spec = importlib.util.spec_from_file_location(name[: -len(".py")], ROOT / name)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up here
+    spec.loader.exec_module(module)
+    return module
+
+
+def scripts_with(attribute):
+    """The scripts that define `attribute`, for checks of math that only some scripts have."""
+    return [name for name in SCRIPTS if hasattr(load_script(name), attribute)]
+
+
+@pytest.fixture(params=SCRIPTS)
+def script(request):
+    return request.param
+
+
+def run_cli(script, *args, cwd, timeout=300, check=True):
+    """Run a script's real command line in `cwd`; return the CompletedProcess."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / script), *map(str, args)],
+        cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout,
+    )  # fmt: skip
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{script} {' '.join(map(str, args))} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+def tb_scalars(run_dir):
+    """All scalars in a run directory's TensorBoard event files: {tag: [(step, value), ...]}."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    acc.Reload()
+    return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}

@@ -1,0 +1,164 @@
+"""The real command line of every script, on tiny budgets: smoke, determinism, checkpoints,
+resume, evaluation, video and bad input."""
+
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+from conftest import ROOT, SCRIPTS, TINY, load_script, run_cli, tb_scalars
+
+EXPECTED_SCALARS = {
+    "charts/episodic_return", "charts/episodic_length", "charts/learning_rate", "charts/SPS",
+    "losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl",
+    "losses/old_approx_kl", "losses/clipfrac", "losses/explained_variance",
+}  # fmt: skip
+
+
+def train_tiny(script, cwd, name="run", *extra):
+    cfg = TINY[script]
+    run_dir = cwd / name
+    proc = run_cli(script, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", run_dir, *extra, cwd=cwd)
+    return run_dir, proc
+
+
+def weights(run_dir):
+    return torch.load(run_dir / "checkpoint.pt", weights_only=True)["agent"]
+
+
+def test_every_script_is_configured():
+    assert "ppo_continuous.py" in SCRIPTS
+    assert set(SCRIPTS) <= set(TINY), f"add the new script to TINY in conftest.py: {set(SCRIPTS) - set(TINY)}"
+
+
+def test_import_runs_nothing_heavy(script):
+    code = f"import sys; sys.path.insert(0, {str(ROOT)!r}); import {script[:-3]}; print(sorted(m for m in ('mujoco', 'ale_py', 'gymnasium', 'tyro') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_help_lists_the_flags(script, tmp_path):
+    out = run_cli(script, "--help", cwd=tmp_path).stdout
+    for flag in ["--env-id", "--total-timesteps", "--num-envs", "--num-steps", "--seed", "--resume", "--eval-checkpoint", "--save-every"]:
+        assert flag in out
+
+
+def test_smoke_run_logs_and_checkpoints(script, tmp_path):
+    run_dir, proc = train_tiny(script, tmp_path)
+    checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert checkpoint["global_step"] == 128
+    assert "step" in proc.stdout and "SPS" in proc.stdout
+    scalars = tb_scalars(run_dir)
+    assert EXPECTED_SCALARS <= set(scalars), EXPECTED_SCALARS - set(scalars)
+    assert [step for step, _ in scalars["charts/SPS"]] == [64, 128]
+    for tag in ["losses/policy_loss", "losses/value_loss", "losses/approx_kl"]:
+        assert all(np.isfinite(v) for _, v in scalars[tag])
+    # Nothing is left half-written.
+    assert not list(run_dir.glob("*.tmp"))
+
+
+def test_same_seed_same_result_different_seed_different(script, tmp_path):
+    a, _ = train_tiny(script, tmp_path, "a", "--seed", "3")
+    b, _ = train_tiny(script, tmp_path, "b", "--seed", "3")
+    c, _ = train_tiny(script, tmp_path, "c", "--seed", "4")
+    wa, wb, wc = weights(a), weights(b), weights(c)
+    for key, value in wa.items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(value, wb[key]), key
+    assert not torch.equal(wa["actor_mean.0.weight"], wc["actor_mean.0.weight"])
+    assert tb_scalars(a)["charts/episodic_return"] == tb_scalars(b)["charts/episodic_return"]
+
+
+def test_interrupt_saves_and_resume_continues_the_curve(script, tmp_path):
+    cfg = TINY[script]
+    run_dir = tmp_path / "run"
+    # A run long enough to interrupt: 32 iterations of 64 steps, with a checkpoint every iteration.
+    args = [sys.executable, str(ROOT / script), "--env-id", cfg["env_id"], "--num-steps", "64", "--minibatch-size", "16",
+            "--update-epochs", "10", "--total-timesteps", "2048", "--save-every", "1", "--run-dir", str(run_dir)]  # fmt: skip
+    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)  # Ctrl-C
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, (out, err)
+    assert "Traceback" not in err and "--resume" in out
+    saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    interrupted_at = saved["global_step"]
+    assert 0 < interrupted_at < 2048
+
+    resumed = run_cli(script, "--resume", run_dir / "checkpoint.pt", cwd=tmp_path)
+    assert f"at step {interrupted_at:,}" in resumed.stdout
+    final = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert final["global_step"] == 2048 and final["iteration"] == 32
+    # One TensorBoard curve: every iteration's step exactly once, from 64 to 2048.
+    steps = [step for step, _ in tb_scalars(run_dir)["charts/SPS"]]
+    assert steps == list(range(64, 2049, 64))
+
+
+def test_resume_restores_weights_statistics_and_optimizer(script, tmp_path):
+    run_dir, _ = train_tiny(script, tmp_path)
+    module = load_script(script)
+    checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"))
+    assert checkpoint["optimizer"]["state"], "the optimizer's moments are saved"
+    obs_rms = checkpoint["agent"]["obs_rms._extra_state"]
+    assert obs_rms["count"] > 128 and obs_rms["var"].min() > 0
+
+
+def test_eval_runs_the_saved_policy(script, tmp_path):
+    run_dir, _ = train_tiny(script, tmp_path)
+    out = run_cli(script, "--eval-checkpoint", run_dir / "checkpoint.pt", "--eval-episodes", "3", cwd=tmp_path).stdout
+    assert "over 3 episodes" in out and "±" in out
+
+
+def test_eval_uses_the_saved_statistics(script, tmp_path):
+    # Two checkpoints that differ only in their normalization statistics must act differently.
+    run_dir, _ = train_tiny(script, tmp_path)
+    module = load_script(script)
+    checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"))
+    checkpoint["agent"]["obs_rms._extra_state"]["mean"] += 5.0
+    module.save_checkpoint(checkpoint, str(tmp_path / "shifted.pt"))
+    a = run_cli(script, "--eval-checkpoint", run_dir / "checkpoint.pt", "--eval-episodes", "2", cwd=tmp_path).stdout
+    b = run_cli(script, "--eval-checkpoint", tmp_path / "shifted.pt", "--eval-episodes", "2", cwd=tmp_path).stdout
+    assert a.split("return")[1] != b.split("return")[1]
+
+
+def test_video_is_written_and_not_blank(script, tmp_path):
+    import imageio.v3 as iio
+
+    run_dir, _ = train_tiny(script, tmp_path)
+    run_cli(script, "--eval-checkpoint", run_dir / "checkpoint.pt", "--eval-episodes", "1", "--capture-video", cwd=tmp_path)
+    videos = list(run_dir.rglob("*.mp4"))
+    assert videos, list(run_dir.rglob("*"))
+    frames = np.stack(list(iio.imiter(videos[0])))
+    assert frames.ndim == 4 and frames.shape[0] > 1 and frames.shape[-1] == 3
+    assert frames.std() > 5, "the video is blank"
+    assert np.abs(frames[-1].astype(int) - frames[0].astype(int)).mean() > 0.1, "the video does not move"
+
+
+BAD_INPUTS = [
+    (["--env-id", "NoSuchEnv-v0"], "unknown env id"),
+    (["--env-id", "{wrong_action_space_env}"], "action space"),
+    (["--num-steps", "100", "--minibatch-size", "64"], "does not divide"),
+    (["--total-timesteps", "0"], "must be positive"),
+    (["--total-timesteps", "-5"], "must be positive"),
+    (["--num-envs", "0"], "must be positive"),
+    (["--resume", "missing.pt"], "does not exist"),
+    (["--eval-checkpoint", "corrupt.pt"], "corrupt"),
+    (["--resume", "notacheckpoint.pt"], "not a checkpoint"),
+]
+
+
+@pytest.mark.parametrize("args,message", BAD_INPUTS, ids=[m for _, m in BAD_INPUTS])
+def test_bad_input_is_one_clear_line_before_training(script, tmp_path, args, message):
+    (tmp_path / "corrupt.pt").write_bytes(b"\x80\x02this is not a checkpoint")
+    torch.save({"some": "dict"}, tmp_path / "notacheckpoint.pt")
+    args = [a.format(**TINY[script]) for a in args]
+    proc = run_cli(script, *args, cwd=tmp_path, check=False)
+    assert proc.returncode == 2, (proc.stdout, proc.stderr)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "error:" in lines[0] and message in lines[0], proc.stderr
+    assert not (tmp_path / "runs").exists(), "training started"
