@@ -100,7 +100,8 @@ class Args:
     """number of episodes for --eval-checkpoint"""
 
 
-# Flags that describe how to run, not what is trained. Everything else must match on --resume.
+# Flags that describe how to run, not what is trained: on --resume these come from the command line,
+# everything else from the checkpoint.
 RUNTIME_FIELDS = ("torch_threads", "capture_video", "save_every", "resume", "eval_checkpoint", "eval_episodes")
 
 
