@@ -47,3 +47,11 @@ def test_readme_test_command_is_what_ci_runs():
     command = "python -m pytest -n 2 tests"
     assert command in README
     assert command in (ROOT / ".ci" / "run").read_text()
+
+
+def test_kl_flags_are_documented():
+    section = README.split("## `ppo_kl_penalty.py`")[1].split("\n## ")[0]
+    base = {f.name for f in dataclasses.fields(load_script("ppo_continuous.py").Args)}
+    extra = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(load_script("ppo_kl_penalty.py").Args) if f.name not in base}
+    listed = set(re.findall(r"^\| `(--[\w-]+)`", section, re.M))
+    assert listed == extra, (extra - listed, listed - extra)
