@@ -113,6 +113,11 @@ class Args:
 RUNTIME_FIELDS = ("torch_threads", "capture_video", "save_every", "resume", "eval_checkpoint", "eval_episodes")
 
 
+def args_from_checkpoint(checkpoint, args):
+    """The Args of the run saved in `checkpoint`, with the RUNTIME_FIELDS of `args`."""
+    return Args(**{**checkpoint["args"], **{k: getattr(args, k) for k in RUNTIME_FIELDS}})
+
+
 # ALGORITHM
 
 
@@ -329,7 +334,7 @@ class Agent(nn.Module):
 # CHECKPOINTS
 
 
-def make_checkpoint(args, agent, optimizer, global_step, iteration, run_dir, beta):
+def make_checkpoint(args, agent, optimizer, global_step, iteration, beta):
     # Everything a resumed run needs, as plain tensors, numbers and strings, so that it loads with
     # torch.load(weights_only=True): a checkpoint is data and can never run code. deepcopy takes a
     # snapshot, so that Ctrl-C during an update still saves the last complete iteration.
@@ -341,7 +346,6 @@ def make_checkpoint(args, agent, optimizer, global_step, iteration, run_dir, bet
         "optimizer": copy.deepcopy(optimizer.state_dict()),
         "global_step": global_step,
         "iteration": iteration,
-        "run_dir": run_dir,
         "torch_rng_state": torch.get_rng_state(),
         "beta": beta,  # the adapted KL coefficient is part of the run's state
     }
@@ -391,8 +395,7 @@ def check_args(args):
         raise ValueError("use either --resume or --eval-checkpoint, not both")
     for path in (args.resume, args.eval_checkpoint):
         if path is not None:
-            checkpoint = load_checkpoint(path)
-            args = Args(**{**checkpoint["args"], **{k: getattr(args, k) for k in RUNTIME_FIELDS}})
+            args = args_from_checkpoint(load_checkpoint(path), args)
     try:
         env = gym.make(args.env_id)
     except gym.error.Error as e:
@@ -417,17 +420,18 @@ def train(args):
         # The same run continues: its hyperparameters, weights, statistics, step and RNG come from
         # the checkpoint; only the flags in RUNTIME_FIELDS are taken from this command line.
         checkpoint = load_checkpoint(args.resume)
-        args = Args(**{**checkpoint["args"], **{k: getattr(args, k) for k in RUNTIME_FIELDS}})
+        args = args_from_checkpoint(checkpoint, args)
     batch_size = args.num_envs * args.num_steps
     num_iterations = args.total_timesteps // batch_size
 
     if checkpoint is not None:
-        run_dir = checkpoint["run_dir"]
+        checkpoint_path = args.resume
+        run_dir = os.path.dirname(os.path.abspath(checkpoint_path))  # the run goes on where its checkpoint is
     else:
         run_name = f"{args.env_id.replace('/', '-')}__{args.exp_name}__{args.seed}__{int(time.time())}"
         run_dir = args.run_dir or os.path.join("runs", run_name)
+        checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     os.makedirs(run_dir, exist_ok=True)
-    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     if args.capture_video:
         os.environ.setdefault("MUJOCO_GL", "egl")  # render headless, without a display
 
@@ -453,6 +457,9 @@ def train(args):
         global_step, start_iteration, beta = checkpoint["global_step"], checkpoint["iteration"] + 1, checkpoint["beta"]
         torch.set_rng_state(checkpoint["torch_rng_state"])
         print(f"resuming {run_dir} at step {global_step:,} (iteration {checkpoint['iteration']}/{num_iterations})")
+        if start_iteration > num_iterations:
+            print("the run had already finished: nothing to do")
+            return agent, run_dir
 
     # purge_step drops the events an interrupted run logged after its checkpoint's step, so the
     # TensorBoard curve continues from that step without a fold.
@@ -485,7 +492,7 @@ def train(args):
     episode_length = np.zeros(args.num_envs, dtype=np.int64)
     recent_returns = deque(maxlen=100)
 
-    snapshot = make_checkpoint(args, agent, optimizer, global_step, start_iteration - 1, run_dir, beta)
+    snapshot = make_checkpoint(args, agent, optimizer, global_step, start_iteration - 1, beta)
     start_time, start_step, last_print = time.time(), global_step, 0.0
     # The benchmark runner stops runs with SIGTERM: treat it like Ctrl-C, which saves the checkpoint.
     signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt()))
@@ -637,7 +644,7 @@ def train(args):
             writer.add_scalar("losses/explained_variance", explained_var, global_step)
 
             # CHECKPOINT
-            snapshot = make_checkpoint(args, agent, optimizer, global_step, iteration, run_dir, beta)
+            snapshot = make_checkpoint(args, agent, optimizer, global_step, iteration, beta)
             if iteration % args.save_every == 0 or iteration == num_iterations:
                 save_checkpoint(snapshot, checkpoint_path)
 
@@ -670,12 +677,13 @@ def evaluate(args):
     import gymnasium as gym
 
     checkpoint = load_checkpoint(args.eval_checkpoint)
-    train_args = Args(**checkpoint["args"])
+    train_args = args_from_checkpoint(checkpoint, args)
     torch.set_num_threads(args.torch_threads)
+    if args.capture_video:
+        os.environ.setdefault("MUJOCO_GL", "egl")  # render headless, without a display
     env = gym.make(train_args.env_id, render_mode="rgb_array" if args.capture_video else None)
     if args.capture_video:
-        os.environ.setdefault("MUJOCO_GL", "egl")
-        video_dir = os.path.join(checkpoint["run_dir"], "videos-eval")
+        video_dir = os.path.join(os.path.dirname(os.path.abspath(args.eval_checkpoint)), "videos-eval")
         env = gym.wrappers.RecordVideo(env, video_dir, episode_trigger=lambda episode: True, name_prefix="eval")
     agent = Agent(env.observation_space.shape[0], env.action_space.shape[0], norm_obs=train_args.norm_obs)
     agent.load_state_dict(checkpoint["agent"])

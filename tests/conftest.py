@@ -51,7 +51,7 @@ def script(request):
 
 def run_cli(script, *args, cwd, timeout=300, check=True):
     """Run a script's real command line in `cwd`; return the CompletedProcess."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}  # MUJOCO_GL is left to the scripts' own default
     proc = subprocess.run(
         [sys.executable, str(ROOT / script), *map(str, args)],
         cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout,

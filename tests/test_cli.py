@@ -162,3 +162,13 @@ def test_bad_input_is_one_clear_line_before_training(script, tmp_path, args, mes
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "error:" in lines[0] and message in lines[0], proc.stderr
     assert not (tmp_path / "runs").exists(), "training started"
+
+
+def test_training_records_video_of_the_first_env(script, tmp_path):
+    import imageio.v3 as iio
+
+    run_dir, _ = train_tiny(script, tmp_path, "run", "--capture-video")
+    videos = sorted((run_dir / "videos").glob("*.mp4"))
+    assert videos, list(run_dir.rglob("*"))
+    frames = np.stack(list(iio.imiter(videos[0])))
+    assert frames.shape[0] > 1 and frames.std() > 5
