@@ -55,3 +55,14 @@ def test_kl_flags_are_documented():
     extra = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(load_script("ppo_kl_penalty.py").Args) if f.name not in base}
     listed = set(re.findall(r"^\| `(--[\w-]+)`", section, re.M))
     assert listed == extra, (extra - listed, listed - extra)
+
+
+def test_quoted_results_come_from_the_generated_tables():
+    # Every bold figure in the Results and Speed sections must appear in a generated table.
+    sections = README.split("## Results")[1].split("## Tests")[0]
+    generated = "".join(p.read_text() for p in (ROOT / "benchmarks" / "results").rglob("*.md"))
+    quoted = re.findall(r"\*\*([\d.,±× ]+?)\*\*", sections)
+    assert quoted
+    for figure in quoted:
+        for number in re.findall(r"\d[\d.]*", figure.replace(",", "")):
+            assert number in generated, f"README quotes {number}, which no generated table in benchmarks/results has"
