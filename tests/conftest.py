@@ -13,17 +13,27 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPTS = sorted(p.name for p in ROOT.glob("ppo_*.py"))
 
 # How to run each script on a tiny budget: an env it accepts, a few hundred steps with a small
-# batch, and an env it must reject for its action space. A new script must add its line here, or
+# batch, a run of 32 iterations of 64 steps (long enough to interrupt), and an env it must reject
+# for its action space. A new script must add its line here, or
 # test_every_script_is_configured fails.
 TINY = {
     "ppo_continuous.py": {
         "env_id": "Hopper-v5",
         "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128"],
+        "interruptible": ["--num-steps", "64", "--minibatch-size", "16", "--update-epochs", "10", "--total-timesteps", "2048"],
         "wrong_action_space_env": "CartPole-v1",
+    },
+    "ppo_atari.py": {
+        "env_id": "BreakoutNoFrameskip-v4",
+        # 3 iterations of 4 envs x 96 steps: long enough for random games of Breakout to end
+        "tiny": ["--num-envs", "4", "--num-steps", "96", "--minibatch-size", "128", "--update-epochs", "1", "--total-timesteps", "1152"],
+        "interruptible": ["--num-envs", "1", "--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "1", "--total-timesteps", "2048"],
+        "wrong_action_space_env": "Hopper-v5",
     },
     "ppo_kl_penalty.py": {
         "env_id": "Hopper-v5",
         "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128"],
+        "interruptible": ["--num-steps", "64", "--minibatch-size", "16", "--update-epochs", "10", "--total-timesteps", "2048"],
         "wrong_action_space_env": "CartPole-v1",
     },
 }

@@ -48,12 +48,14 @@ def test_help_lists_the_flags(script, tmp_path):
 
 def test_smoke_run_logs_and_checkpoints(script, tmp_path):
     run_dir, proc = train_tiny(script, tmp_path)
+    tiny = dict(zip(TINY[script]["tiny"][::2], map(int, TINY[script]["tiny"][1::2])))
+    batch, total = tiny.get("--num-envs", 1) * tiny["--num-steps"], tiny["--total-timesteps"]
     checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
-    assert checkpoint["global_step"] == 128
+    assert checkpoint["global_step"] == total
     assert "step" in proc.stdout and "SPS" in proc.stdout
     scalars = tb_scalars(run_dir)
     assert EXPECTED_SCALARS <= set(scalars), EXPECTED_SCALARS - set(scalars)
-    assert [step for step, _ in scalars["charts/SPS"]] == [64, 128]
+    assert [step for step, _ in scalars["charts/SPS"]] == list(range(batch, total + 1, batch))
     for tag in ["losses/policy_loss", "losses/value_loss", "losses/approx_kl"]:
         assert all(np.isfinite(v) for _, v in scalars[tag])
     # Nothing is left half-written.
@@ -68,7 +70,8 @@ def test_same_seed_same_result_different_seed_different(script, tmp_path):
     for key, value in wa.items():
         if isinstance(value, torch.Tensor):
             assert torch.equal(value, wb[key]), key
-    assert not torch.equal(wa["actor_mean.0.weight"], wc["actor_mean.0.weight"])
+    first_weight = next(key for key in wa if key.endswith("weight"))
+    assert not torch.equal(wa[first_weight], wc[first_weight])
     assert tb_scalars(a)["charts/episodic_return"] == tb_scalars(b)["charts/episodic_return"]
 
 
@@ -76,8 +79,7 @@ def test_interrupt_saves_and_resume_continues_the_curve(script, tmp_path):
     cfg = TINY[script]
     run_dir = tmp_path / "run"
     # A run long enough to interrupt: 32 iterations of 64 steps, with a checkpoint every iteration.
-    args = [sys.executable, str(ROOT / script), "--env-id", cfg["env_id"], "--num-steps", "64", "--minibatch-size", "16",
-            "--update-epochs", "10", "--total-timesteps", "2048", "--save-every", "1", "--run-dir", str(run_dir)]  # fmt: skip
+    args = [sys.executable, str(ROOT / script), "--env-id", cfg["env_id"], *cfg["interruptible"], "--save-every", "1", "--run-dir", str(run_dir)]
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
@@ -99,13 +101,14 @@ def test_interrupt_saves_and_resume_continues_the_curve(script, tmp_path):
     assert steps == list(range(64, 2049, 64))
 
 
-def test_resume_restores_weights_statistics_and_optimizer(script, tmp_path):
+def test_checkpoint_holds_optimizer_and_statistics(script, tmp_path):
     run_dir, _ = train_tiny(script, tmp_path)
     module = load_script(script)
     checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"))
     assert checkpoint["optimizer"]["state"], "the optimizer's moments are saved"
-    obs_rms = checkpoint["agent"]["obs_rms._extra_state"]
-    assert obs_rms["count"] > 128 and obs_rms["var"].min() > 0
+    if hasattr(module, "RunningMeanStd"):
+        obs_rms = checkpoint["agent"]["obs_rms._extra_state"]
+        assert obs_rms["count"] > 128 and obs_rms["var"].min() > 0
 
 
 def test_eval_runs_the_saved_policy(script, tmp_path):
@@ -116,8 +119,10 @@ def test_eval_runs_the_saved_policy(script, tmp_path):
 
 def test_eval_uses_the_saved_statistics(script, tmp_path):
     # Two checkpoints that differ only in their normalization statistics must act differently.
-    run_dir, _ = train_tiny(script, tmp_path)
     module = load_script(script)
+    if not hasattr(module, "RunningMeanStd"):
+        pytest.skip(f"{script} normalizes no observations")
+    run_dir, _ = train_tiny(script, tmp_path)
     checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"))
     checkpoint["agent"]["obs_rms._extra_state"]["mean"] += 5.0
     module.save_checkpoint(checkpoint, str(tmp_path / "shifted.pt"))
@@ -168,7 +173,7 @@ def test_training_records_video_of_the_first_env(script, tmp_path):
     import imageio.v3 as iio
 
     run_dir, _ = train_tiny(script, tmp_path, "run", "--capture-video")
-    videos = sorted((run_dir / "videos").glob("*.mp4"))
+    videos = sorted((run_dir / "videos").rglob("*.mp4"))
     assert videos, list(run_dir.rglob("*"))
     frames = np.stack(list(iio.imiter(videos[0])))
     assert frames.shape[0] > 1 and frames.std() > 5
