@@ -265,12 +265,16 @@ class Agent(nn.Module):
         # Core detail 2: output gains 0.01 for the policy (near-uniform at the start), 1 for the value.
         self.actor = layer_init(nn.Linear(512, num_actions), std=0.01)
         self.critic = layer_init(nn.Linear(512, 1), std=1.0)
+        # Speed: channels-last (NHWC) is the layout oneDNN's CPU convolutions run fastest on. On
+        # this project's 2-core CPU it makes the update 1.6x faster, reaching about 90% of the
+        # FLOP rate of a plain matmul (benchmarks/atari_flops.py).
+        self.to(memory_format=torch.channels_last)
 
     def forward(self, obs):
         """uint8 frames [B, 4, 84, 84] -> (logits [B, A], value [B])."""
         # Atari detail 9: scale to [0, 1] inside the network. The rollout keeps uint8 frames, a
         # quarter of the memory of float32 ones.
-        hidden = self.network(obs.float() / 255.0)
+        hidden = self.network(obs.contiguous(memory_format=torch.channels_last).float() / 255.0)
         return self.actor(hidden), self.critic(hidden).squeeze(-1)
 
 

@@ -7,7 +7,7 @@ from conftest import ROOT, load_script
 from test_cli import EXPECTED_SCALARS
 
 README = (ROOT / "README.md").read_text()
-DETAIL_MENTION = re.compile(r"(?i)\b(core|continuous) details? (\d+(?:\s*[-,/]\s*\d+)*)")
+DETAIL_MENTION = re.compile(r"(?i)\b(core|continuous|atari) details? (\d+(?:\s*[-,/]\s*\d+)*)")
 
 
 def mentioned_details(line):
@@ -21,8 +21,9 @@ def mentioned_details(line):
 
 
 def test_every_detail_links_to_a_line_that_cites_it():
-    rows = re.findall(r"^\| (core|continuous) (\d+) \|.*\]\((ppo_\w+\.py)#L(\d+)\) \|$", README, re.M)
-    assert {(f, int(n)) for f, n, _, _ in rows} == {("core", n) for n in range(1, 14)} | {("continuous", n) for n in range(1, 10)}
+    rows = re.findall(r"^\| (core|continuous|atari) (\d+) \|.*\]\((ppo_\w+\.py)#L(\d+)\) \|$", README, re.M)
+    expected = {("core", n) for n in range(1, 14)} | {("continuous", n) for n in range(1, 10)} | {("atari", n) for n in range(1, 10)}
+    assert {(f, int(n)) for f, n, _, _ in rows} == expected
     for family, number, script, line in rows:
         source = (ROOT / script).read_text().splitlines()
         cited_at = [i + 1 for i, text in enumerate(source) if (family, int(number)) in mentioned_details(text)]
