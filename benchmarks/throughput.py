@@ -1,7 +1,8 @@
 """Steps per second of our scripts beside their peers, measured side by side in one run.
 
     pip install -r benchmarks/requirements.txt
-    python benchmarks/throughput.py                 # about 3 minutes on a 2-core CPU
+    python benchmarks/throughput.py                 # MuJoCo (Hopper), about 5 minutes on a 2-core CPU
+    python benchmarks/throughput.py --suite atari   # Atari (Breakout), about 5 minutes
 
 Every measurement runs in a fresh process, one at a time, and the cases are repeated in
 alternation (ours, peer, env, ours, peer, env, ...) so that a slow spell of the machine hits all of
@@ -31,15 +32,24 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "benchmarks" / "results" / "throughput.md"
+RESULTS = ROOT / "benchmarks" / "results"
 
 # A suite: its env, our scripts, and their peers.
 # Each run also measures the env alone.
 SUITES = {
     "mujoco": {
         "env_id": "Hopper-v5",
+        "steps": 10240,  # 5 rollouts of 2048
         "ours": ["ppo_continuous.py", "ppo_kl_penalty.py"],
         "peers": ["sb3_ppo_mujoco", "sb3_ppo_mujoco_1thread"],
+        "settings": "1 env, T=2048, K=10 epochs, minibatch 64, 64x64 tanh MLPs",
+    },
+    "atari": {
+        "env_id": "BreakoutNoFrameskip-v4",
+        "steps": 4096,  # 4 rollouts of 8 x 128
+        "ours": ["ppo_atari.py"],
+        "peers": ["sb3_ppo_atari"],
+        "settings": "8 envs, T=128, K=3 epochs, minibatch 256, Nature CNN, lr and clip annealed",
     },
 }
 
@@ -68,9 +78,8 @@ def measure_ours(script, env_id, steps):
 
     warm_up_torch()
     with tempfile.TemporaryDirectory() as tmp:
-        args = module.Args(env_id=env_id, total_timesteps=steps, run_dir=tmp, seed=1)
+        args = module.Args(env_id=env_id, total_timesteps=steps, run_dir=tmp, seed=1)  # the script's defaults
         module.check_args(args)
-        torch.set_num_threads(1)
         start = time.perf_counter()
         module.train(args)
         return steps / (time.perf_counter() - start)
@@ -99,6 +108,47 @@ def measure_sb3_ppo_mujoco(env_id, steps, threads=None):
     return steps / (time.perf_counter() - start)
 
 
+def measure_sb3_ppo_atari(env_id, steps):
+    import ale_py
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_atari_env
+    from stable_baselines3.common.vec_env import VecFrameStack
+
+    gym.register_envs(ale_py)
+    # SB3's Atari wrappers (noop, skip+max, episodic life, fire reset, 84x84 gray, clipped reward)
+    # and a 4-frame stack, with the paper's Table 5 settings as in ppo_atari.py.
+    envs = VecFrameStack(make_atari_env(env_id, n_envs=8, seed=1), n_stack=4)
+    model = PPO(
+        "CnnPolicy", envs, n_steps=128, batch_size=256, n_epochs=3,
+        learning_rate=lambda progress_remaining: 2.5e-4 * progress_remaining,
+        clip_range=lambda progress_remaining: 0.1 * progress_remaining,
+        gamma=0.99, gae_lambda=0.95, ent_coef=0.01, vf_coef=1.0, max_grad_norm=0.5,
+        device="cpu", seed=1, verbose=0,
+    )  # fmt: skip
+    start = time.perf_counter()
+    model.learn(total_timesteps=steps)
+    return steps / (time.perf_counter() - start)
+
+
+def measure_atari_env(env_id, steps):
+    import importlib.util
+
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("ppo_atari", ROOT / "ppo_atari.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    envs = module.make_envs(module.Args(env_id=env_id))  # the env exactly as ppo_atari.py makes it
+    envs.reset(seed=1)
+    rng = np.random.default_rng(1)
+    start = time.perf_counter()
+    for _ in range(steps // envs.num_envs):
+        envs.step(rng.integers(0, envs.single_action_space.n, size=envs.num_envs))
+    return steps / (time.perf_counter() - start)
+
+
 def measure_env(env_id, steps):
     import gymnasium as gym
 
@@ -116,6 +166,10 @@ def measure_env(env_id, steps):
 def run_worker(case, env_id, steps):
     if case.endswith(".py"):
         sps = measure_ours(case, env_id, steps)
+    elif case == "sb3_ppo_atari":
+        sps = measure_sb3_ppo_atari(env_id, steps)
+    elif case == "env" and "NoFrameskip" in env_id:
+        sps = measure_atari_env(env_id, steps)
     elif case == "sb3_ppo_mujoco":
         sps = measure_sb3_ppo_mujoco(env_id, steps)
     elif case == "sb3_ppo_mujoco_1thread":
@@ -171,7 +225,7 @@ def commit():
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--suite", choices=sorted(SUITES), default="mujoco")
-    parser.add_argument("--steps", type=int, default=10240, help="env steps per measurement (5 iterations of 2048)")
+    parser.add_argument("--steps", type=int, help="env steps per measurement (default: the suite's, a few rollouts)")
     parser.add_argument("--repeats", type=int, default=3, help="measurements of each case, taken in alternation")
     parser.add_argument("--no-write", action="store_true", help="print the table but do not write the results file")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
@@ -179,10 +233,11 @@ def main():
     args = parser.parse_args()
     if args.worker:
         return run_worker(args.worker, args.env_id, args.steps)
+    suite = SUITES[args.suite]
+    args.steps = args.steps or suite["steps"]
     if args.steps <= 0 or args.repeats <= 0:
         parser.error("--steps and --repeats must be positive")
 
-    suite = SUITES[args.suite]
     env_id = suite["env_id"]
     ours = [s for s in suite["ours"] if (ROOT / s).exists()]
     cases = [*ours, *suite["peers"], "env"]
@@ -212,10 +267,12 @@ def main():
         lines.append(f"| {case} | {median[case]:.0f} | {', '.join(f'{s:.0f}' for s in samples[case])} | {ratios} | {median[case] / env:.2f} |")
     lines += [
         "",
-        f"- Settings: {env_id}, 1 env, T=2048, K=10 epochs, minibatch 64, 64x64 tanh MLPs;"
+        f"- Settings: {env_id}, {suite['settings']};"
         f" {args.steps:,} steps per measurement, {args.repeats} measurements of each case, in alternation; the median is shown.",
-        "- Peers: Stable-Baselines3's PPO with the same hyperparameters, network and VecNormalize;"
-        " `sb3_ppo_mujoco` with torch's default threads (as SB3 users run it), `sb3_ppo_mujoco_1thread` with 1 thread (as ours).",
+        "- Peers: Stable-Baselines3's PPO with the same hyperparameters and network; `sb3_ppo_mujoco` (with VecNormalize)"
+        " and `sb3_ppo_atari` (with its Atari wrappers and a 4-frame stack) run with torch's default threads, as SB3 users"
+        " run it, `sb3_ppo_mujoco_1thread` with 1 thread, as ppo_continuous.py. `env` is the environment alone with random"
+        " actions (for Atari, ale-py's vector env as ppo_atari.py makes it).",
         "- The other process sharing the machine during the run, if any, is not controlled: compare ratios, not absolute figures.",
         f"- Command: `{command.strip()}`",
         f"- Commit: {commit()}; date: {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
@@ -225,9 +282,10 @@ def main():
     table = "\n".join(lines) + "\n"
     print("\n" + table)
     if not args.no_write:
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(table)
-        print(f"wrote {RESULTS.relative_to(ROOT)}")
+        path = RESULTS / ("throughput.md" if args.suite == "mujoco" else f"throughput_{args.suite}.md")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(table)
+        print(f"wrote {path.relative_to(ROOT)}")
 
 
 if __name__ == "__main__":
