@@ -180,6 +180,15 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
 
 def game_name(env_id):
     """'BreakoutNoFrameskip-v4', 'ALE/Breakout-v5', 'Breakout' or 'breakout' -> the ROM name 'breakout'."""
+    import ale_py
+    import gymnasium as gym
+
+    gym.register_envs(ale_py)
+    for registered in (env_id, f"ALE/{env_id}-v5"):  # a registered ALE id knows its ROM's name
+        try:
+            return gym.spec(registered).kwargs["game"]  # UpNDown -> up_n_down, which no rule would guess
+        except (gym.error.Error, KeyError):
+            pass
     name = env_id.split("/")[-1]
     name = re.sub(r"(NoFrameskip)?(-v\d+)?$", "", name)
     name = re.sub(r"Deterministic$", "", name)
@@ -190,9 +199,10 @@ def make_envs(args, num_envs=None, training=True):
     """ale-py's native vector env: C++ emulators on their own threads, which do the whole
     preprocessing of atari details 1-7 themselves, about 2x faster here than gymnasium's
     SyncVectorEnv with one Python wrapper per preprocessing step per env."""
-    from ale_py import AtariVectorEnv
+    import ale_py
 
-    return AtariVectorEnv(
+    ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # no banner on stderr
+    return ale_py.AtariVectorEnv(
         game_name(args.env_id),
         num_envs or args.num_envs,
         num_threads=min(num_envs or args.num_envs, os.cpu_count() or 1),
@@ -328,6 +338,8 @@ def check_args(args):
         raise ValueError("--learning-rate and --clip-coef must be positive")
     if not (0 <= args.gamma <= 1 and 0 <= args.gae_lambda <= 1):
         raise ValueError("--gamma and --gae-lambda must be in [0, 1]")
+    if args.max_grad_norm <= 0 or args.vf_coef < 0 or args.ent_coef < 0:
+        raise ValueError("--max-grad-norm must be positive, --vf-coef and --ent-coef at least 0")
     batch_size = args.num_envs * args.num_steps
     if batch_size % args.minibatch_size != 0:
         raise ValueError(f"--minibatch-size {args.minibatch_size} does not divide the batch of --num-envs x --num-steps = {batch_size}")
@@ -349,7 +361,8 @@ def check_args(args):
             raise ValueError(f"unknown env id {args.env_id!r}: no Atari game {game_name(args.env_id)!r} ships with ale-py") from None
         space = env.action_space
         env.close()
-        raise ValueError(f"{args.env_id} is not an Atari game and has a {space} action space; use ppo_continuous.py for continuous control")
+        hint = "; use ppo_continuous.py for continuous control" if isinstance(space, gym.spaces.Box) else ""
+        raise ValueError(f"{args.env_id} is not an Atari game (its action space is {space}); ppo_atari.py plays Atari games{hint}")
 
 
 # TRAINING
@@ -426,7 +439,7 @@ def train(args):
     snapshot = make_checkpoint(args, agent, optimizer, global_step, start_iteration - 1)
     start_time, start_step, last_print = time.time(), global_step, 0.0
     # The benchmark runner stops runs with SIGTERM: treat it like Ctrl-C, which saves the checkpoint.
-    signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt()))
+    previous_sigterm = signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt()))
 
     try:
         for iteration in range(start_iteration, num_iterations + 1):
@@ -464,7 +477,7 @@ def train(args):
                         next_values[step, torch.from_numpy(trunc)] = agent(final_obs)[1]
 
                     if args.capture_video and games_of_env0 == round(games_of_env0 ** (1 / 3)) ** 3:
-                        video_frames.append(obs[step, 0, -1].numpy())
+                        video_frames.append(obs[step, 0, -1].numpy().copy())  # a copy: obs is reused
                     for i in np.flatnonzero(finished):
                         recent_returns.append(episode_return[i])
                         writer.add_scalar("charts/episodic_return", episode_return[i], global_step)
@@ -472,7 +485,7 @@ def train(args):
                         episode_return[i], episode_length[i] = 0.0, 0
                         if i == 0:
                             if video_frames:
-                                write_video(video_frames, os.path.join(run_dir, "videos", f"game-{games_of_env0}.mp4"))
+                                write_video(video_frames, os.path.join(run_dir, "videos", f"step-{global_step}-game-{games_of_env0}.mp4"))
                             video_frames, games_of_env0 = [], games_of_env0 + 1
 
                 # ADVANTAGES: next_values[t] = V(s_{t+1}), the next row of values, V(next_obs)
@@ -552,6 +565,7 @@ def train(args):
             # CHECKPOINT
             snapshot = make_checkpoint(args, agent, optimizer, global_step, iteration)
             if iteration % args.save_every == 0 or iteration == num_iterations:
+                writer.flush()  # the curve on disk reaches at least the checkpoint's step
                 save_checkpoint(snapshot, checkpoint_path)
 
             # PROGRESS: one line, rewritten in place on a terminal, printed every 30 s in a log.
@@ -565,12 +579,14 @@ def train(args):
                 end = "\n" if not sys.stdout.isatty() or iteration == num_iterations else ""
                 print(("\r" if sys.stdout.isatty() else "") + line, end=end, flush=True)
         if video_frames:  # the game being recorded has not ended: keep what there is
-            write_video(video_frames, os.path.join(run_dir, "videos", f"game-{games_of_env0}-unfinished.mp4"))
+            write_video(video_frames, os.path.join(run_dir, "videos", f"step-{global_step}-game-{games_of_env0}-unfinished.mp4"))
     except KeyboardInterrupt:
+        writer.flush()
         save_checkpoint(snapshot, checkpoint_path)
         print(f"\ninterrupted: saved step {snapshot['global_step']:,} to {checkpoint_path}; continue with --resume {checkpoint_path}")
         sys.exit(130)
     finally:
+        signal.signal(signal.SIGTERM, previous_sigterm)
         envs.close()
         writer.close()
     print(f"saved {checkpoint_path}")
@@ -611,7 +627,7 @@ def evaluate(args):
             done, game_return, frames = False, 0.0, []
             while not done:
                 if args.capture_video:
-                    frames.append(next_obs[0, -1])
+                    frames.append(next_obs[0, -1].copy())
                 logits, _ = agent(torch.from_numpy(next_obs))
                 action = torch.argmax(logits - torch.log(-torch.log(torch.rand_like(logits))), dim=-1)
                 next_obs, reward, term, trunc, _ = envs.step(action.numpy())

@@ -43,7 +43,7 @@ class Args:
     seed: int = 1
     """seed of torch, numpy, random and the environments"""
     torch_threads: int = 1
-    """torch CPU threads; 1 is fastest for 64x64 MLPs and leaves the other core to the physics"""
+    """torch CPU threads; 1 is fastest for 64x64 MLPs, where intra-op threads cost more than they save"""
     run_dir: str | None = None
     """where TensorBoard logs and the checkpoint go (default: runs/{env_id}__{exp_name}__{seed}__{time})"""
     capture_video: bool = False
@@ -345,6 +345,8 @@ def check_args(args):
         raise ValueError("--learning-rate and --clip-coef must be positive")
     if not (0 <= args.gamma <= 1 and 0 <= args.gae_lambda <= 1):
         raise ValueError("--gamma and --gae-lambda must be in [0, 1]")
+    if args.max_grad_norm <= 0 or args.vf_coef < 0 or args.ent_coef < 0:
+        raise ValueError("--max-grad-norm must be positive, --vf-coef and --ent-coef at least 0")
     batch_size = args.num_envs * args.num_steps
     if batch_size % args.minibatch_size != 0:
         raise ValueError(f"--minibatch-size {args.minibatch_size} does not divide the batch of --num-envs x --num-steps = {batch_size}")
@@ -355,6 +357,13 @@ def check_args(args):
     for path in (args.resume, args.eval_checkpoint):
         if path is not None:
             args = args_from_checkpoint(load_checkpoint(path), args)
+    try:  # register the Atari ids too, so that one gets the discrete-action message below
+        import ale_py
+
+        gym.register_envs(ale_py)
+        ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # no banner on stderr
+    except ImportError:
+        pass
     try:
         env = gym.make(args.env_id)
     except gym.error.Error as e:
@@ -362,9 +371,9 @@ def check_args(args):
     action_space, observation_space = env.action_space, env.observation_space
     env.close()
     if not isinstance(action_space, gym.spaces.Box):
-        raise ValueError(f"{args.env_id} has a {action_space} action space; ppo_continuous.py needs a Box action space. Use ppo_atari.py for discrete actions")
+        raise ValueError(f"{args.env_id} has a {action_space} action space; {os.path.basename(__file__)} needs a Box action space. Use ppo_atari.py for discrete actions")
     if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
-        raise ValueError(f"{args.env_id} has a {observation_space} observation space; ppo_continuous.py needs a flat Box")
+        raise ValueError(f"{args.env_id} has a {observation_space} observation space; {os.path.basename(__file__)} needs a flat Box")
 
 
 # TRAINING
@@ -400,7 +409,9 @@ def train(args):
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.torch_threads)
 
-    envs = make_envs(args, video_dir=os.path.join(run_dir, "videos"))
+    # Videos of a resumed run go to a folder of their own, so that they overwrite none of the earlier ones.
+    first_step = checkpoint["global_step"] if checkpoint is not None else 0
+    envs = make_envs(args, video_dir=os.path.join(run_dir, "videos", f"from-step-{first_step}"))
     obs_dim, act_dim = envs.single_observation_space.shape[0], envs.single_action_space.shape[0]
     action_low, action_high = envs.single_action_space.low, envs.single_action_space.high
 
@@ -454,13 +465,15 @@ def train(args):
     snapshot = make_checkpoint(args, agent, optimizer, global_step, start_iteration - 1)
     start_time, start_step, last_print = time.time(), global_step, 0.0
     # The benchmark runner stops runs with SIGTERM: treat it like Ctrl-C, which saves the checkpoint.
-    signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt()))
+    previous_sigterm = signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt()))
 
     try:
         for iteration in range(start_iteration, num_iterations + 1):
             # Core detail 4: anneal the learning rate linearly from its initial value to 0. The
             # paper's Table 3 gives a fixed 3e-4, but the code that produced its MuJoCo results
-            # (openai/baselines ppo1, run_mujoco.py) anneals it with schedule="linear".
+            # (openai/baselines ppo1, run_mujoco.py) anneals it with schedule="linear". That code
+            # also annealed the clip range with the same factor; we keep epsilon fixed, as the
+            # paper's text and Table 1 state it.
             if args.anneal_lr:
                 frac = 1.0 - (iteration - 1.0) / num_iterations
                 optimizer.param_groups[0]["lr"] = frac * args.learning_rate
@@ -590,6 +603,7 @@ def train(args):
             # CHECKPOINT
             snapshot = make_checkpoint(args, agent, optimizer, global_step, iteration)
             if iteration % args.save_every == 0 or iteration == num_iterations:
+                writer.flush()  # the curve on disk reaches at least the checkpoint's step
                 save_checkpoint(snapshot, checkpoint_path)
 
             # PROGRESS: one line, rewritten in place on a terminal, printed every 30 s in a log.
@@ -603,10 +617,12 @@ def train(args):
                 end = "\n" if not sys.stdout.isatty() or iteration == num_iterations else ""
                 print(("\r" if sys.stdout.isatty() else "") + line, end=end, flush=True)
     except KeyboardInterrupt:
+        writer.flush()
         save_checkpoint(snapshot, checkpoint_path)
         print(f"\ninterrupted: saved step {snapshot['global_step']:,} to {checkpoint_path}; continue with --resume {checkpoint_path}")
         sys.exit(130)
     finally:
+        signal.signal(signal.SIGTERM, previous_sigterm)
         envs.close()
         writer.close()
     print(f"saved {checkpoint_path}")

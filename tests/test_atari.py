@@ -16,7 +16,7 @@ def envs(num_envs=2, training=True, env_id="BreakoutNoFrameskip-v4"):
     "env_id,game",
     [("BreakoutNoFrameskip-v4", "breakout"), ("ALE/Breakout-v5", "breakout"), ("Breakout", "breakout"),
      ("breakout", "breakout"), ("BeamRiderNoFrameskip-v4", "beam_rider"), ("ALE/MsPacman-v5", "ms_pacman"),
-     ("PongDeterministic-v4", "pong")],
+     ("PongDeterministic-v4", "pong"), ("UpNDownNoFrameskip-v4", "up_n_down"), ("UpNDown", "up_n_down")],
 )  # fmt: skip
 def test_env_ids_name_their_game(env_id, game):
     assert atari.game_name(env_id) == game
@@ -132,3 +132,19 @@ def test_clip_range_and_learning_rate_anneal_together(tmp_path):
     assert n >= 2
     assert [v for _, v in scalars["charts/clip_coef"]] == pytest.approx([0.1 * a for a in alpha])
     assert [v for _, v in scalars["charts/learning_rate"]] == pytest.approx([2.5e-4 * a for a in alpha])
+
+
+def test_training_video_frames_are_not_overwritten_by_later_rollouts(tmp_path):
+    # The rollout buffer is reused every iteration; a recorded frame must be a copy, or a game longer
+    # than one rollout shows the last rollout's frames again and again.
+    import imageio.v3 as iio
+
+    run_dir = tmp_path / "run"
+    run_cli("ppo_atari.py", "--env-id", TINY["ppo_atari.py"]["env_id"], "--num-envs", "2", "--num-steps", "32",
+            "--minibatch-size", "64", "--update-epochs", "1", "--total-timesteps", "640", "--capture-video",
+            "--run-dir", run_dir, cwd=tmp_path)  # fmt: skip
+    video = max((run_dir / "videos").rglob("*.mp4"), key=lambda p: p.stat().st_size)
+    frames = np.stack(list(iio.imiter(video))).astype(float)
+    assert len(frames) > 64
+    period_diffs = [np.abs(frames[k] - frames[k + 32]).mean() for k in range(len(frames) - 32)]
+    assert max(period_diffs) > 1.0, "frames repeat with the rollout's period"

@@ -117,3 +117,9 @@ def test_fixed_beta_stays_fixed(tmp_path):
     run_cli(script, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", run_dir, "--init-beta", "3", "--no-adaptive-beta", cwd=tmp_path)
     assert [v for _, v in tb_scalars(run_dir)["losses/beta"]] == [3.0, 3.0]
     assert np.isfinite([v for _, v in tb_scalars(run_dir)["losses/kl"]]).all()
+
+
+def test_zero_beta_cannot_be_adaptive(tmp_path):
+    proc = run_cli("ppo_kl_penalty.py", "--init-beta", "0", cwd=tmp_path, check=False)
+    assert proc.returncode == 2 and "--no-adaptive-beta" in proc.stderr
+    assert not (tmp_path / "runs").exists()
