@@ -80,12 +80,15 @@ def test_interrupt_saves_and_resume_continues_the_curve(script, tmp_path):
     run_dir = tmp_path / "run"
     # A run long enough to interrupt: 32 iterations of 64 steps, with a checkpoint every iteration.
     args = [sys.executable, str(ROOT / script), "--env-id", cfg["env_id"], *cfg["interruptible"], "--save-every", "1", "--run-dir", str(run_dir)]
-    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # A shell without job control starts background jobs with SIGINT ignored, and Python then keeps
+    # ignoring it; give the child the default disposition, as a terminal would.
+    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
     deadline = time.time() + 120
     while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
         time.sleep(0.02)
     proc.send_signal(signal.SIGINT)  # Ctrl-C
-    out, err = proc.communicate(timeout=60)
+    out, err = proc.communicate(timeout=300)
     assert proc.returncode == 130, (out, err)
     assert "Traceback" not in err and "--resume" in out
     saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
