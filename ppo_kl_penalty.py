@@ -501,8 +501,8 @@ def train(args):
     next_obs_raw, _ = envs.reset(seed=args.seed + global_step)
     next_obs = observe(next_obs_raw)
     discounted_return = np.zeros(N)  # for reward scaling
-    episode_return = np.zeros(args.num_envs)
-    episode_length = np.zeros(args.num_envs, dtype=np.int64)
+    episode_return = np.zeros(N)
+    episode_length = np.zeros(N, dtype=np.int64)
     recent_returns = deque(maxlen=100)
 
     snapshot = make_checkpoint(args, agent, optimizer, global_step, start_iteration - 1, beta)
@@ -524,8 +524,8 @@ def train(args):
             # ROLLOUT
             # Per step we run only what must be sequential: normalize, the policy mean, a Gaussian
             # sample, and the env. The value V(s_t) and log pi(a_t|s_t) do not change during the
-            # rollout, so they are computed afterwards for the whole batch in one call each, which
-            # costs less than a third of 2048 single-row calls.
+            # rollout, so they are computed afterwards for the whole batch in one call each, at a
+            # small fraction of the cost of 2048 single-row calls.
             action_std = torch.exp(agent.actor_logstd.detach())
             with torch.inference_mode():
                 for step in range(T):
