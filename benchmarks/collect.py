@@ -119,12 +119,38 @@ def write_table(out_dir):
     return "\n".join(lines)
 
 
+def plot_curves(out_dir):
+    """<suite>/curves.png: each run's episodic return against steps, as a 100-episode moving mean."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for path in sorted(out_dir.glob("*.csv")):
+        meta, rows = read_csv(path)
+        steps, returns = np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
+        window = min(100, len(returns))
+        smooth = np.convolve(returns, np.ones(window) / window, mode="valid")
+        ax.plot(steps[window - 1 :], smooth, label=f"{meta['script']} seed {meta['seed']}")
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("episodic return (mean of the last 100 episodes)")
+    ax.set_title(f"{out_dir.name}")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out_dir / "curves.png", dpi=100)
+    plt.close(fig)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("run_dirs", nargs="*", type=Path)
     parser.add_argument("--suite", required=True)
     parser.add_argument("--command", default="", help="the command that made each run; {seed} is filled in")
     parser.add_argument("--commit", help="the commit the runs were made at (default: HEAD)")
+    parser.add_argument("--plot", action="store_true", help="also draw <suite>/curves.png (needs matplotlib)")
     args = parser.parse_args()
     out_dir = ROOT / "benchmarks" / "results" / args.suite
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -149,6 +175,8 @@ def main():
             writer.writerows(rows)
         print(f"wrote {path.relative_to(ROOT)}: score {score(rows):.1f}")
     print(write_table(out_dir))
+    if args.plot:
+        plot_curves(out_dir)
 
 
 if __name__ == "__main__":
