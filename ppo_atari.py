@@ -276,8 +276,8 @@ class Agent(nn.Module):
         self.actor = layer_init(nn.Linear(512, num_actions), std=0.01)
         self.critic = layer_init(nn.Linear(512, 1), std=1.0)
         # Speed: channels-last (NHWC) is the layout oneDNN's CPU convolutions run fastest on. On
-        # this project's 2-core CPU it makes the update 1.6x faster, reaching about 90% of the
-        # FLOP rate of a plain matmul (benchmarks/atari_flops.py).
+        # this project's 2-core CPU it makes the update 1.6-1.8x faster, close to the FLOP rate of
+        # a plain matmul (benchmarks/atari_flops.py, benchmarks/results/atari_flops.md).
         self.to(memory_format=torch.channels_last)
 
     def forward(self, obs):
