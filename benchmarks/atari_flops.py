@@ -9,7 +9,6 @@ inference (a batch of 8), in the default NCHW layout and in the channels-last la
 uses. The FLOPs are counted analytically: 2 per multiply-add, and backward = 2 x forward.
 """
 
-import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -17,10 +16,10 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
-spec = importlib.util.spec_from_file_location("ppo_atari", ROOT / "ppo_atari.py")
-ppo_atari = importlib.util.module_from_spec(spec)
-sys.modules["ppo_atari"] = ppo_atari
-spec.loader.exec_module(ppo_atari)
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import load_script, machine, versions  # noqa: E402
+
+ppo_atari = load_script("ppo_atari.py")
 
 # Multiply-adds of one forward pass of the Nature CNN on one 4x84x84 observation.
 MACS = 32 * 20 * 20 * (4 * 8 * 8) + 64 * 9 * 9 * (32 * 4 * 4) + 64 * 7 * 7 * (64 * 3 * 3) + 3136 * 512 + 512 * 5
@@ -71,9 +70,6 @@ def main():
                 t = seconds_per_call(lambda: agent.network(frames.contiguous(memory_format=memory_format).float() / 255.0), 40)
             rate = 2 * MACS * 8 / t / 1e9
             print(f"| {threads} | inference, batch 8 | {layout} | {t * 1e3:.2f} ms | {rate:.1f} | {rate / matmul:.2f} |")
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from collect import machine, versions
-
     print("")
     print(f"- Versions: {versions()}; machine: {machine()}")
     text = "\n".join(lines) + "\n"

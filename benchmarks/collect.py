@@ -13,36 +13,14 @@ from __future__ import annotations
 
 import argparse
 import csv
-import platform
 import statistics
 import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def versions():
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = [f"python {platform.python_version()}"]
-    for package in ["torch", "numpy", "gymnasium", "mujoco"]:
-        try:
-            out.append(f"{package} {version(package)}")
-        except PackageNotFoundError:
-            pass
-    return ", ".join(out)
-
-
-def machine():
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    import os
-
-    return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import machine, versions  # noqa: E402
 
 
 def read_run(run_dir):

@@ -12,7 +12,6 @@ the mean return, the random policy's score. The paper normalizes Table 1 with th
 
 import argparse
 import csv
-import importlib.util
 import statistics
 import sys
 from pathlib import Path
@@ -21,14 +20,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from collect import machine, versions  # noqa: E402
+from common import load_script, machine, versions  # noqa: E402
 
 
 def atari_returns(env_id, episodes, seed):
-    spec = importlib.util.spec_from_file_location("ppo_atari", ROOT / "ppo_atari.py")
-    ppo_atari = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = ppo_atari
-    spec.loader.exec_module(ppo_atari)
+    ppo_atari = load_script("ppo_atari.py")
     envs = ppo_atari.make_envs(ppo_atari.Args(env_id=env_id), num_envs=1, training=False)
     rng = np.random.default_rng(seed)
     rows = []

@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -33,6 +31,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import load_script, machine, versions  # noqa: E402
 
 # A suite: its env, our scripts, and their peers.
 # Each run also measures the env alone.
@@ -65,14 +65,7 @@ def warm_up_torch():
 
 
 def measure_ours(script, env_id, steps):
-    import importlib.util
-
-    import torch
-
-    spec = importlib.util.spec_from_file_location(script[:-3], ROOT / script)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
+    module = load_script(script)
     import gymnasium  # noqa: F401  (imports are not timed, as for the peer)
     from torch.utils.tensorboard import SummaryWriter  # noqa: F401
 
@@ -132,14 +125,9 @@ def measure_sb3_ppo_atari(env_id, steps):
 
 
 def measure_atari_env(env_id, steps):
-    import importlib.util
-
     import numpy as np
 
-    spec = importlib.util.spec_from_file_location("ppo_atari", ROOT / "ppo_atari.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
+    module = load_script("ppo_atari.py")
     envs = module.make_envs(module.Args(env_id=env_id))  # the env exactly as ppo_atari.py makes it
     envs.reset(seed=1)
     rng = np.random.default_rng(1)
@@ -190,30 +178,6 @@ def measure(case, env_id, steps):
     if proc.returncode != 0:
         raise SystemExit(f"{case} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])["sps"]
-
-
-def versions():
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {"python": platform.python_version()}
-    for package in ["torch", "numpy", "gymnasium", "mujoco", "stable-baselines3"]:
-        try:
-            out[package] = version(package)
-        except PackageNotFoundError:
-            out[package] = "not installed"
-    return out
-
-
-def machine():
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}"
 
 
 def commit():
@@ -276,7 +240,7 @@ def main():
         "- The other process sharing the machine during the run, if any, is not controlled: compare ratios, not absolute figures.",
         f"- Command: `{command.strip()}`",
         f"- Commit: {commit()}; date: {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
-        f"- Versions: {', '.join(f'{k} {v}' for k, v in versions().items())}",
+        f"- Versions: {versions(('torch', 'numpy', 'gymnasium', 'mujoco', 'ale-py', 'stable-baselines3'))}",
         f"- Machine: {machine()}",
     ]
     table = "\n".join(lines) + "\n"
