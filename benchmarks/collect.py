@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import statistics
 import subprocess
 import sys
@@ -42,6 +43,19 @@ def read_run(run_dir):
         early = betas[: int(0.9 * len(betas))] or betas
         beta = f"{min(betas):.3g}..{max(betas):.3g} (first 90% of updates: {min(early):.3g}..{max(early):.3g})"
     return checkpoint, rows, wall, beta
+
+
+def write_csv(path, header, rows):
+    """A results CSV: '# key: value' header lines, then global_step, episodic_return, episodic_length."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        for key, value in header:
+            f.write(f"# {key}: {value}\n")
+        writer = csv.writer(f)
+        writer.writerow(["global_step", "episodic_return", "episodic_length"])
+        writer.writerows(rows)
+    os.replace(tmp, path)  # a CSV is there in full or not at all: its presence means "finished"
 
 
 def read_csv(path):
@@ -140,17 +154,12 @@ def main():
             sys.exit(f"{run_dir} has not finished (step {checkpoint['global_step']:,})")
         script = checkpoint["script"]
         path = out_dir / f"{a['env_id']}__{script[:-3]}__seed{a['seed']}.csv"
-        with open(path, "w", newline="") as f:
-            for key, value in [
-                ("command", args.command.format(seed=a["seed"])), ("script", script), ("env_id", a["env_id"]),
-                ("seed", a["seed"]), ("global_step", checkpoint["global_step"]), ("commit", rev),
-                ("versions", versions()), ("machine", machine()), ("wall_time_s", f"{wall:.0f}"),
-                *([("beta_range", beta)] if beta else []),
-            ]:  # fmt: skip
-                f.write(f"# {key}: {value}\n")
-            writer = csv.writer(f)
-            writer.writerow(["global_step", "episodic_return", "episodic_length"])
-            writer.writerows(rows)
+        write_csv(path, [
+            ("command", args.command.format(seed=a["seed"])), ("script", script), ("env_id", a["env_id"]),
+            ("seed", a["seed"]), ("global_step", checkpoint["global_step"]), ("commit", rev),
+            ("versions", versions()), ("machine", machine()), ("wall_time_s", f"{wall:.0f}"),
+            *([("beta_range", beta)] if beta else []),
+        ], rows)  # fmt: skip
         print(f"wrote {path.relative_to(ROOT)}: score {score(rows):.1f}")
     print(write_table(out_dir))
     if args.plot:

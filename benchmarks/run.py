@@ -1,0 +1,373 @@
+"""Run a benchmark suite: a grid of (script, variant, env, seed) training runs that never loses work.
+
+    python benchmarks/run.py mujoco                     # the paper's 7 tasks, 1M steps, 3 seeds
+    python benchmarks/run.py table1 --variants no-clip clip0.2 kl0.01 --envs Hopper Swimmer
+    python benchmarks/run.py table1 --list              # print the grid and what is done, run nothing
+
+Each run is its own process (`python ppo_*.py ... --torch-threads 1 --run-dir ...`), up to
+--workers at a time. A finished run becomes one CSV, benchmarks/results/<suite>/<env>__<variant>__seed<N>.csv:
+a header of '# key: value' lines (the command, commit, package versions, machine, wall time), then
+one row per episode. Run the same command again and it skips every run that has its CSV, resumes
+every unfinished run from its checkpoint in benchmarks/runs/ (the scripts save one every
+--save-every iterations, and on SIGTERM or Ctrl-C), and starts the rest. So a suite can be built
+up over several sessions, and an interrupted sweep loses at most one save interval per run.
+
+A run with the same script, flags, env, seed and budget as a finished run of another suite is
+not run twice: its CSV is copied (table1's clip0.2 row is the mujoco suite).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from collect import read_csv, read_run, score, write_csv  # noqa: E402
+from common import load_script, machine, versions  # noqa: E402
+
+# The paper's 7 MuJoCo tasks (§6.1 used gym's -v1; -v5 is today's version of each).
+MUJOCO = ["HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5", "InvertedPendulum-v5", "Reacher-v5", "Swimmer-v5", "Walker2d-v5"]
+
+
+@dataclass
+class Suite:
+    variants: dict[str, tuple[str, list[str]]]  # name -> (script, flags)
+    envs: list[str]
+    seeds: list[int]
+    total_timesteps: int
+    about: str = ""
+
+
+SUITES = {
+    "mujoco": Suite({"clip0.2": ("ppo_continuous.py", [])}, MUJOCO, [1, 2, 3], 1_000_000,
+                    "ppo_continuous.py defaults (the paper's Table 3, clip 0.2)"),
+    # Table 1: every row keeps the other hyperparameters at ppo_continuous.py's defaults. The KL rows
+    # start at beta = 1, as the paper's did. "No clipping or penalty" is the KL script with beta 0.
+    "table1": Suite({
+        "no-clip": ("ppo_kl_penalty.py", ["--init-beta", "0", "--no-adaptive-beta"]),
+        "clip0.1": ("ppo_continuous.py", ["--clip-coef", "0.1"]),
+        "clip0.2": ("ppo_continuous.py", []),
+        "clip0.3": ("ppo_continuous.py", ["--clip-coef", "0.3"]),
+        "kl0.003": ("ppo_kl_penalty.py", ["--kl-target", "0.003"]),
+        "kl0.01": ("ppo_kl_penalty.py", []),
+        "kl0.03": ("ppo_kl_penalty.py", ["--kl-target", "0.03"]),
+        "beta0.3": ("ppo_kl_penalty.py", ["--init-beta", "0.3", "--no-adaptive-beta"]),
+        "beta1": ("ppo_kl_penalty.py", ["--init-beta", "1", "--no-adaptive-beta"]),
+        "beta3": ("ppo_kl_penalty.py", ["--init-beta", "3", "--no-adaptive-beta"]),
+        "beta10": ("ppo_kl_penalty.py", ["--init-beta", "10", "--no-adaptive-beta"]),
+    }, MUJOCO, [1, 2, 3], 1_000_000, "the paper's Table 1 rows; everything else at the scripts' defaults"),  # fmt: skip
+    # The paper trained Atari for 10M agent steps (40M frames), about 8 hours a game on this CPU.
+    "atari": Suite({"default": ("ppo_atari.py", [])}, ["BreakoutNoFrameskip-v4", "PongNoFrameskip-v4", "BeamRiderNoFrameskip-v4"],
+                   [1], 1_000_000, "ppo_atari.py defaults (the paper's Table 5), alpha annealed over the budget"),
+}  # fmt: skip
+
+
+@dataclass
+class Job:
+    suite: str
+    variant: str
+    script: str
+    flags: list[str]
+    env_id: str
+    seed: int
+    total_timesteps: int
+    results_dir: Path
+    runs_dir: Path
+    progress: int = field(default=0, compare=False)
+
+    @property
+    def name(self):
+        return f"{self.env_id}__{self.variant}__seed{self.seed}"
+
+    @property
+    def csv(self):
+        return self.results_dir / f"{self.name}.csv"
+
+    @property
+    def run_dir(self):
+        return self.runs_dir / self.name
+
+    @property
+    def checkpoint(self):
+        return self.run_dir / "checkpoint.pt"
+
+    @property
+    def identity(self):
+        """What makes two runs the same run, wherever their results are kept."""
+        return (self.script, tuple(self.flags), self.env_id, self.seed, self.total_timesteps)
+
+    def command(self, save_every=None):
+        """The command that starts this run from scratch, relative to the repository root."""
+        return (["python", self.script, *self.flags, "--env-id", self.env_id, "--seed", str(self.seed),
+                 "--total-timesteps", str(self.total_timesteps), "--torch-threads", "1",
+                 *(["--save-every", str(save_every)] if save_every else []), "--run-dir", str(_rel(self.run_dir))])  # fmt: skip
+
+
+def _rel(path):
+    path = Path(path).resolve()
+    return path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+
+
+def results_folder(suite, total_timesteps):
+    """results/<suite>/ at the suite's own budget; results/<suite>_<budget>/ for any other budget."""
+    default = SUITES[suite].total_timesteps
+    if total_timesteps == default:
+        return suite
+    return f"{suite}_{total_timesteps // 1000}k" if total_timesteps % 1000 == 0 else f"{suite}_{total_timesteps}"
+
+
+def resolve_env(name, known):
+    """'Hopper' or 'Hopper-v5' -> 'Hopper-v5' from the suite's list; any other id is taken as given."""
+    matches = [env for env in known if env == name or env.split("-v")[0] == name or env.split("NoFrameskip")[0] == name]
+    return matches[0] if matches else name
+
+
+def make_grid(suite, variants=None, envs=None, seeds=None, total_timesteps=None, results_root=None, runs_root=None):
+    """The suite's jobs, or the subset asked for. Raises ValueError on an unknown suite or variant."""
+    if suite not in SUITES:
+        raise ValueError(f"unknown suite {suite!r}; the suites are {', '.join(SUITES)}")
+    spec = SUITES[suite]
+    for variant in variants or []:
+        if variant not in spec.variants:
+            raise ValueError(f"suite {suite} has no variant {variant!r}; its variants are {', '.join(spec.variants)}")
+    total = total_timesteps or spec.total_timesteps
+    folder = results_folder(suite, total)
+    results_dir = Path(results_root or ROOT / "benchmarks" / "results") / folder
+    runs_dir = Path(runs_root or ROOT / "benchmarks" / "runs") / folder
+    return [
+        Job(suite, variant, *spec.variants[variant], resolve_env(env, spec.envs), seed, total, results_dir, runs_dir)
+        for variant in (variants or spec.variants)
+        for env in (envs or spec.envs)
+        for seed in (seeds or spec.seeds)
+    ]
+
+
+def check_grid(jobs):
+    """Parse every distinct command with its script's own parser and argument checks, so that an
+    unknown env or a flag the script lacks stops the sweep before any run starts."""
+    import tyro
+
+    seen = set()
+    for job in jobs:
+        key = (job.script, tuple(job.flags), job.env_id)
+        if key in seen:
+            continue
+        seen.add(key)
+        module = load_script(job.script)
+        argv = job.command()[2:]
+        try:
+            args = tyro.cli(module.Args, args=argv, console_outputs=False)
+        except SystemExit:
+            raise ValueError(f"{job.script} does not accept the flags {shlex.join(job.flags)} (variant {job.variant})") from None
+        try:
+            module.check_args(args)
+        except ValueError as e:
+            raise ValueError(f"{job.script} rejects {job.name}: {e}") from None
+
+
+def find_equivalent(job, results_root):
+    """A finished CSV of the same run in another suite's results, if there is one."""
+    for suite in SUITES:
+        for other in make_grid(suite, total_timesteps=job.total_timesteps, results_root=results_root):
+            if other.identity == job.identity and other.csv != job.csv and other.csv.exists():
+                return other.csv
+    return None
+
+
+def git(*args):
+    return subprocess.run(["git", *args], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+
+
+def commit_of(script):
+    """The commit the script is at, marked when the script differs from it."""
+    rev = git("rev-parse", "--short", "HEAD") or "unknown"
+    return rev + (" (script modified)" if git("status", "--porcelain", "--", script) else "")
+
+
+def log_attempt(job, started, commit, elapsed, returncode, resumed):
+    """One line per process a run took: when, at which commit, how long, and how it ended."""
+    with open(job.run_dir / "attempts.txt", "a") as f:
+        f.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S', time.gmtime(started))}\t{commit}\t{elapsed:.0f}\t{returncode}\t{'resume' if resumed else 'start'}\n")
+
+
+def read_attempts(job):
+    path = job.run_dir / "attempts.txt"
+    if not path.exists():
+        return []
+    return [line.rstrip("\n").split("\t") for line in path.read_text().splitlines() if line.strip()]
+
+
+def finish(job):
+    """Turn a finished run directory into its CSV."""
+    checkpoint, rows, _, beta = read_run(job.run_dir)
+    attempts = read_attempts(job)
+    commits = sorted({a[1] for a in attempts if a[3] == "0" or a[3] == "130"} or {a[1] for a in attempts}) or ["unknown"]
+    wall = sum(float(a[2]) for a in attempts)
+    header = [
+        ("command", shlex.join(job.command())), ("suite", job.suite), ("variant", job.variant), ("script", job.script),
+        ("env_id", job.env_id), ("seed", job.seed), ("global_step", checkpoint["global_step"]),
+        ("commit", ", ".join(commits)), ("versions", versions()), ("machine", machine()),
+        ("wall_time_s", f"{wall:.0f}"), ("attempts", len(attempts)), *([("beta_range", beta)] if beta else []),
+    ]  # fmt: skip
+    write_csv(job.csv, header, rows)
+    return score(rows)
+
+
+def last_step(job):
+    """The latest step a running job printed, from its log (the scripts print one every 30 s)."""
+    try:
+        with open(job.run_dir / "log.txt", "rb") as f:
+            f.seek(max(0, os.path.getsize(f.name) - 4096))
+            tail = f.read().decode(errors="replace")
+    except OSError:
+        return 0
+    steps = re.findall(r"step\s+([\d,]+)/", tail)
+    return int(steps[-1].replace(",", "")) if steps else 0
+
+
+def fmt_time(seconds):
+    seconds = int(seconds)
+    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+
+
+def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=None):
+    """Run what is not finished, `workers` at a time. Returns the number of runs that failed."""
+    todo, done = [], 0
+    for job in jobs:
+        if job.csv.exists():
+            done += 1
+            continue
+        source = find_equivalent(job, results_root)
+        if source is not None:
+            job.csv.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(source, job.csv)
+            print(f"{job.name}: the same run is finished in {_rel(source)}; copied", flush=True)
+            done += 1
+            continue
+        todo.append(job)
+    total = len(jobs)
+    print(f"{done}/{total} runs finished, {len(todo)} to run on {workers} workers", flush=True)
+    if not todo:
+        return 0
+
+    running, failed = {}, 0
+    start = time.time()
+    steps_at_start = {}
+    stopping = False
+
+    def stop(signum, frame):
+        nonlocal stopping
+        if stopping:
+            return
+        stopping = True
+        print("stopping: each run saves its checkpoint", flush=True)
+        for proc in running:  # each script saves its checkpoint on SIGTERM and exits
+            proc.terminate()
+
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGINT)}
+    last_status = 0.0
+    try:
+        while (todo and not stopping) or running:
+            while todo and len(running) < workers and not stopping:
+                job = todo.pop(0)
+                job.run_dir.mkdir(parents=True, exist_ok=True)
+                resumed = job.checkpoint.exists()
+                cmd = job.command(save_every)
+                if resumed:  # the run's own hyperparameters come back from its checkpoint
+                    cmd = ["python", job.script, "--resume", str(_rel(job.checkpoint)), "--torch-threads", "1",
+                           *(["--save-every", str(save_every)] if save_every else [])]  # fmt: skip
+                log = open(job.run_dir / "log.txt", "a")
+                log.write(f"$ {shlex.join(cmd)}\n")
+                log.flush()
+                # A session of its own: Ctrl-C in the terminal reaches only this runner, which then
+                # stops each run exactly once, so that no second signal cuts a checkpoint save short.
+                proc = subprocess.Popen([sys.executable, *cmd[1:]], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                                        env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
+                running[proc] = (job, time.time(), commit_of(job.script), resumed, log)
+                job.progress = steps_at_start[job.name] = last_step(job) if resumed else 0
+                print(f"{'resume' if resumed else 'start '} {job.name}" + (f" at step {job.progress:,}" if resumed else ""), flush=True)
+            time.sleep(0.2)
+            for proc in [p for p in running if p.poll() is not None]:
+                job, started, commit, resumed, log = running.pop(proc)
+                log.close()
+                log_attempt(job, started, commit, time.time() - started, proc.returncode, resumed)
+                if proc.returncode == 0:
+                    done += 1
+                    result = finish(job)
+                    job.progress = job.total_timesteps
+                    print(f"done   {job.name}: score {result:.1f} ({done}/{total})", flush=True)
+                elif stopping:
+                    print(f"stopped {job.name}: its checkpoint is kept; run the same command to resume", flush=True)
+                else:
+                    failed += 1
+                    print(f"FAILED {job.name} (exit {proc.returncode}); see {_rel(job.run_dir / 'log.txt')}", flush=True)
+            if time.time() - last_status > status_every and running:
+                last_status = time.time()
+                for job, *_ in running.values():
+                    job.progress = max(job.progress, last_step(job))
+                print(status_line(jobs, done, total, running, todo, steps_at_start, start), flush=True)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return failed
+
+
+def status_line(jobs, done, total, running, todo, steps_at_start, start):
+    """Runs done/total and an ETA from the steps this sweep has made so far."""
+    made = sum(job.progress - steps_at_start.get(job.name, 0) for job in jobs if job.name in steps_at_start)
+    left = sum(job.total_timesteps - job.progress for job, *_ in running.values()) + sum(job.total_timesteps for job in todo)
+    elapsed = time.time() - start
+    eta = fmt_time(left / (made / elapsed)) if made > 0 else "?"
+    now = ", ".join(f"{job.name} {job.progress / job.total_timesteps:.0%}" for job, *_ in running.values())
+    return f"[{fmt_time(elapsed)}] {done}/{total} runs done | running: {now} | ETA {eta}"
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog="suites: " + "; ".join(f"{k}: {v.about}" for k, v in SUITES.items()))
+    parser.add_argument("suite", help=f"one of: {', '.join(SUITES)}")
+    parser.add_argument("--variants", nargs="+", help="a subset of the suite's variants (default: all)")
+    parser.add_argument("--envs", nargs="+", help="a subset of envs, e.g. Hopper Swimmer (default: the suite's)")
+    parser.add_argument("--seeds", nargs="+", type=int, help="default: the suite's (1 2 3 for the MuJoCo suites)")
+    parser.add_argument("--total-timesteps", type=int, help="another budget; its results go to results/<suite>_<budget>/")
+    parser.add_argument("--workers", type=int, default=os.cpu_count(), help="runs at once, each on one torch thread (default: the number of cores)")
+    parser.add_argument("--save-every", type=int, help="checkpoint every N iterations (default: the script's)")
+    parser.add_argument("--results-dir", type=Path, help="default: benchmarks/results")
+    parser.add_argument("--runs-dir", type=Path, help="where run directories and checkpoints live (default: benchmarks/runs)")
+    parser.add_argument("--status-every", type=float, default=60.0, help="seconds between progress lines")
+    parser.add_argument("--list", action="store_true", help="print the grid and what is finished, and run nothing")
+    args = parser.parse_args()
+    try:
+        if args.workers <= 0:
+            raise ValueError(f"--workers must be positive, got {args.workers}")
+        if args.total_timesteps is not None and args.total_timesteps <= 0:
+            raise ValueError(f"--total-timesteps must be positive, got {args.total_timesteps}")
+        jobs = make_grid(args.suite, args.variants, args.envs, args.seeds, args.total_timesteps, args.results_dir, args.runs_dir)
+        check_grid(jobs)
+    except ValueError as e:
+        sys.exit(f"run.py: error: {e}")
+    if args.list:
+        for job in jobs:
+            state = "finished" if job.csv.exists() else ("checkpoint" if job.checkpoint.exists() else "not started")
+            print(f"{job.name:50s} {state:12s} {shlex.join(job.command())}")
+        return
+    failed = run_grid(jobs, args.workers, args.save_every, args.status_every, args.results_dir)
+    finished = sum(job.csv.exists() for job in jobs)
+    print(f"{finished}/{len(jobs)} runs finished" + (f", {failed} failed" if failed else ""))
+    if failed:
+        sys.exit(1)
+    if finished < len(jobs):
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()
