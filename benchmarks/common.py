@@ -1,8 +1,11 @@
-"""What the benchmark scripts share: loading a script by path, and describing the machine."""
+"""What the benchmark scripts share: loading a script by path, describing the machine, and the
+results CSVs (a header of '# key: value' lines, then one row per episode)."""
 
+import csv
 import importlib.util
 import os
 import platform
+import statistics
 import sys
 from pathlib import Path
 
@@ -37,3 +40,57 @@ def machine():
     except (OSError, StopIteration):
         pass
     return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}"
+
+
+def read_run(run_dir):
+    import torch
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    acc.Reload()
+    returns = acc.Scalars("charts/episodic_return")
+    lengths = acc.Scalars("charts/episodic_length")
+    sps = acc.Scalars("charts/SPS")
+    wall = sum(b.wall_time - a.wall_time for a, b in zip(sps, sps[1:])) if len(sps) > 1 else 0.0
+    checkpoint = torch.load(Path(run_dir) / "checkpoint.pt", map_location="cpu", weights_only=True)
+    rows = [(r.step, r.value, int(l.value)) for r, l in zip(returns, lengths)]
+    beta = None
+    if "losses/beta" in acc.Tags()["scalars"]:
+        # ppo_kl_penalty.py: the range of beta over the whole run and over its first 90% of updates
+        betas = [e.value for e in acc.Scalars("losses/beta")]
+        early = betas[: int(0.9 * len(betas))] or betas
+        beta = f"{min(betas):.3g}..{max(betas):.3g} (first 90% of updates: {min(early):.3g}..{max(early):.3g})"
+    return checkpoint, rows, wall, beta
+
+
+def write_csv(path, header, rows):
+    """A results CSV: '# key: value' header lines, then global_step, episodic_return, episodic_length."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        for key, value in header:
+            f.write(f"# {key}: {value}\n")
+        writer = csv.writer(f)
+        writer.writerow(["global_step", "episodic_return", "episodic_length"])
+        writer.writerows(rows)
+    os.replace(tmp, path)  # a CSV is there in full or not at all: its presence means "finished"
+
+
+def read_csv(path):
+    meta, rows = {}, []
+    with open(path) as f:
+        for line in f:
+            if line.startswith("# "):
+                key, _, value = line[2:].partition(": ")
+                meta[key] = value.strip()
+            else:
+                break
+    with open(path) as f:
+        reader = csv.DictReader(line for line in f if not line.startswith("#"))
+        rows = [(int(r["global_step"]), float(r["episodic_return"]), int(r["episodic_length"])) for r in reader]
+    return meta, rows
+
+
+def score(rows):
+    """A run's score: the mean return of its last 100 episodes."""
+    return statistics.mean(r for _, r, _ in rows[-100:])

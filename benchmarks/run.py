@@ -32,8 +32,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from collect import read_csv, read_run, score, write_csv  # noqa: E402
-from common import load_script, machine, versions  # noqa: E402
+from common import load_script, machine, read_run, score, versions, write_csv  # noqa: E402
 
 # The paper's 7 MuJoCo tasks (§6.1 used gym's -v1; -v5 is today's version of each).
 MUJOCO = ["HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5", "InvertedPendulum-v5", "Reacher-v5", "Swimmer-v5", "Walker2d-v5"]

@@ -1,0 +1,381 @@
+"""Generate every benchmark table and learning-curve plot from the committed CSVs; nothing is typed.
+
+    python benchmarks/report.py                  # every suite folder in benchmarks/results
+    python benchmarks/report.py mujoco table1    # just these
+
+For each suite folder that benchmarks/run.py filled (mujoco, table1, atari, or one of them at
+another budget, such as table1_300k), it writes:
+- <folder>/report.md: a run's score is the mean return of its last 100 episodes; a cell is the
+  mean ± std (sample std) of the scores over seeds; beside ours, the published figures from
+  benchmarks/reference_figures.csv. The table1 report also has the paper's normalized score.
+- <folder>/curves/<env>.png: the mean ± std over seeds of the last-100-episode mean return
+  against steps, one line per variant.
+
+Table 1's normalized score, as the paper computes it: per env, the random policy scores 0 and
+the best setting (the variant with the highest mean score over seeds) scores 1; each run's score
+is mapped onto that scale, and a setting's figure is the mean over its runs. The random policy's
+score is measured by benchmarks/random_score.py and read from results/random/<env>.csv.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import statistics
+import sys
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import read_csv, score  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results"
+REFERENCE = ROOT / "benchmarks" / "reference_figures.csv"
+# The published per-env figures each kind of suite shows: (column in the data file, heading, setting).
+COLUMNS = {
+    "mujoco": [("paper_fig3", "paper, Fig. 3 (approx.)", "clip0.2"), ("cleanrl_1M", "CleanRL 1M (-v4)", "clip0.2"),
+               ("baselines_ppo2_1M", "baselines ppo2 1M", "clip0.2")],
+    "table1": [("paper_fig3", "paper, Fig. 3 (approx.; clip 0.2)", "clip0.2"), ("cleanrl_1M", "CleanRL 1M (-v4; clip 0.2)", "clip0.2")],
+    "atari": [("paper_table6", "paper, Table 6 (10M steps)", "default"), ("cleanrl_atari_10M", "CleanRL 10M", "default")],
+}  # fmt: skip
+
+
+@dataclass
+class Run:
+    env_id: str
+    variant: str
+    seed: int
+    rows: list  # (global_step, episodic_return, episodic_length)
+    meta: dict
+
+    @property
+    def score(self):
+        return score(self.rows)
+
+
+def env_base(env_id):
+    """'Hopper-v5' -> 'Hopper'; 'BreakoutNoFrameskip-v4' -> 'Breakout': the key of the reference figures."""
+    return env_id.split("-v")[0].replace("NoFrameskip", "").removeprefix("ALE/")
+
+
+SCORE_RULE = ("A run's score is the mean return of its last 100 episodes; a cell is the mean ± sample std over seeds,"
+              " with the number of seeds in brackets. Our MuJoCo tasks are -v5 (the paper used gym's -v1, CleanRL -v4).")
+
+
+def load_runs(folder):
+    """Every <env>__<variant>__seed<N>.csv in a suite folder."""
+    runs = []
+    for path in sorted(Path(folder).glob("*__*__seed*.csv")):
+        env_id, variant, seed = path.stem.split("__")
+        meta, rows = read_csv(path)
+        runs.append(Run(env_id, variant, int(seed.removeprefix("seed")), rows, meta))
+    return runs
+
+
+def load_reference(path=REFERENCE):
+    """{(column, env, setting): (score, std or None, source)} from the reference data file."""
+    with open(path) as f:
+        reader = csv.DictReader(line for line in f if not line.startswith("#"))
+        return {
+            (r["column"], r["env"], r["setting"]): (float(r["score"]), float(r["std"]) if r["std"] else None, r["source"])
+            for r in reader
+        }
+
+
+def random_score(env_id, results=RESULTS):
+    """The random policy's mean return on env_id, or None if random_score.py has not measured it."""
+    path = Path(results) / "random" / f"{env_id.replace('/', '-')}.csv"
+    if not path.exists():
+        return None
+    with open(path) as f:
+        return statistics.mean(float(r["episodic_return"]) for r in csv.DictReader(line for line in f if not line.startswith("#")))
+
+
+def mean_std(values):
+    """The mean, and the sample std (None for a single value, which has none)."""
+    return statistics.mean(values), (statistics.stdev(values) if len(values) > 1 else None)
+
+
+def group(runs):
+    """{env_id: {variant: [run, ...]}}"""
+    out = {}
+    for run in runs:
+        out.setdefault(run.env_id, {}).setdefault(run.variant, []).append(run)
+    return out
+
+
+def normalized_scores(runs, random):
+    """Table 1's normalized score of each variant, over the envs every variant here was run on.
+
+    runs: Run objects (or anything with env_id, variant and score); random: {env_id: score}.
+    Returns ({variant: (mean, number of runs)}, the envs used, {env_id: best variant}).
+    """
+    by_env = group(runs)
+    variants = sorted({run.variant for run in runs})
+    envs = sorted(env for env, row in by_env.items() if all(v in row for v in variants) and random.get(env) is not None)
+    per_variant, best_of = {v: [] for v in variants}, {}
+    for env in envs:
+        means = {v: statistics.mean(r.score for r in by_env[env][v]) for v in variants}
+        best_of[env] = max(means, key=means.get)
+        lo, hi = random[env], means[best_of[env]]
+        for v in variants:
+            per_variant[v] += [(r.score - lo) / (hi - lo) for r in by_env[env][v]]
+    return {v: (statistics.mean(s), len(s)) for v, s in per_variant.items() if s}, envs, best_of
+
+
+def fmt(mean, std=None):
+    digits = 2 if abs(mean) < 100 else 1 if abs(mean) < 1000 else 0
+    text = f"{mean:,.{digits}f}"
+    if std is not None:
+        text += f" ± {std:,.{digits}f}"
+    return text
+
+
+def provenance(runs):
+    """The lines every table carries: seeds, budget, commits, versions, machines."""
+    def values(key):
+        return "; ".join(sorted({r.meta.get(key, "not recorded") for r in runs}))
+
+    steps = sorted({int(r.meta["global_step"]) for r in runs})
+    wall = [float(r.meta["wall_time_s"]) for r in runs if "wall_time_s" in r.meta]
+    return [
+        f"- Seeds: {', '.join(map(str, sorted({r.seed for r in runs})))}; {len(runs)} run{'s' if len(runs) > 1 else ''}.",
+        f"- Budget: {', '.join(f'{s:,}' for s in steps)} environment steps per run.",
+        f"- Commits: {values('commit')}.",
+        f"- Versions: {values('versions')}.",
+        f"- Machine: {values('machine')}.",
+        *([f"- Wall time: {sum(wall) / 3600:.1f} h in all, {statistics.mean(wall) / 60:.0f} min per run on average."] if wall else []),
+    ]
+
+
+def suite_variants(kind):
+    """The variants of a suite in the order run.py defines them."""
+    from run import SUITES
+
+    return list(SUITES[kind].variants) if kind in SUITES else []
+
+
+def ordered_variants(kind, runs):
+    present = {r.variant for r in runs}
+    return [v for v in suite_variants(kind) if v in present] + sorted(present - set(suite_variants(kind)))
+
+
+def score_table(runs, reference, columns, variants, results):
+    """env rows; a column of ours per variant, the random policy, then the reference columns."""
+    by_env = group(runs)
+    head = [f"ours: {v} (n)" for v in variants] + ["random policy"] + [title for _, title, _ in columns]
+    lines = ["| env | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
+    for env in sorted(by_env):
+        cells = []
+        for v in variants:
+            scores = [r.score for r in by_env[env].get(v, [])]
+            cells.append(f"{fmt(*mean_std(scores))} ({len(scores)})" if scores else "–")
+        rand = random_score(env, results)
+        cells.append(fmt(rand) if rand is not None else "not measured")
+        for column, _, setting in columns:
+            ref = reference.get((column, env_base(env), setting))
+            cells.append(fmt(ref[0], ref[1]) if ref else "–")
+        lines.append(f"| {env} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def run_table(runs):
+    lines = ["| env | variant | seed | steps | episodes | score | wall time | commit | beta range |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(runs, key=lambda r: (r.env_id, r.variant, r.seed)):
+        wall = f"{float(r.meta['wall_time_s']) / 60:.0f} min" if "wall_time_s" in r.meta else "–"
+        lines.append(f"| {r.env_id} | {r.variant} | {r.seed} | {int(r.meta['global_step']):,} | {len(r.rows)} | {fmt(r.score)}"
+                     f" | {wall} | {r.meta.get('commit', '–')} | {r.meta.get('beta_range', '–')} |")  # fmt: skip
+    return lines
+
+
+def sources(reference, columns):
+    lines = []
+    for column, title, _ in columns:
+        srcs = list(dict.fromkeys(src for (c, _, _), (_, _, src) in reference.items() if c == column))
+        lines.append(f"- {title}: {srcs[0]}" if srcs else f"- {title}: no figures")
+    return lines
+
+
+def suite_kind(folder):
+    """mujoco, table1 or atari, from the folder's name (table1_300k is a table1)."""
+    return next((k for k in COLUMNS if Path(folder).name.startswith(k)), "mujoco")
+
+
+def tables(folder, runs, reference, results, level="##"):
+    """The tables of a suite: Table 1's normalized score (for table1), then the scores per env."""
+    kind, variants = suite_kind(folder), ordered_variants(suite_kind(folder), runs)
+    lines = []
+    if kind == "table1":
+        envs = sorted({r.env_id for r in runs})
+        random = {env: random_score(env, results) for env in envs}
+        norm, norm_envs, best_of = normalized_scores(runs, random)
+        lines += [
+            f"{level} Normalized score (the paper's Table 1)",
+            "",
+            f"Variants run: {', '.join(variants)}. Envs where all of them ran: {', '.join(norm_envs) or 'none'}.",
+            "Per env the random policy scores 0 and the best of the variants *run here* scores 1; the paper",
+            "took the best of all 11 of its settings, so where fewer are run here the best is easier to be,",
+            "and the figures are comparable with the paper's in their order more than in their values.",
+            "",
+            "| setting | ours: normalized score | runs | paper, Table 1 |",
+            "|---|---|---|---|",
+        ]
+        for v in suite_variants("table1"):  # every row of the paper's table, run here or not
+            paper = reference.get(("paper_table1", "", v))
+            ours = norm.get(v)
+            lines.append(f"| {v} | {ours[0]:.2f} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | not run | 0 | {paper[0]:.2f} |")
+        lines += ["", "| env | best variant here |", "|---|---|"]
+        lines += [f"| {env} | {best_of[env]} |" for env in norm_envs]
+        lines += ["", f"{level} Scores", ""]
+    lines += score_table(runs, reference, COLUMNS[kind], variants, results)
+    return lines
+
+
+def report(folder, reference=None, results=RESULTS):
+    """Write <folder>/report.md and <folder>/curves/*.png; return the markdown."""
+    folder = Path(folder)
+    runs = load_runs(folder)
+    if not runs:
+        raise ValueError(f"{folder} has no run CSVs")
+    reference = reference if reference is not None else load_reference()
+    kind = suite_kind(folder)
+    variants = ordered_variants(kind, runs)
+    lines = [
+        f"# {folder.name}: scores",
+        "",
+        "Generated by `benchmarks/report.py` from the CSVs in this folder; do not edit by hand.",
+        SCORE_RULE,
+        "",
+        *provenance(runs),
+        "",
+        *tables(folder, runs, reference, results),
+        "",
+        "Sources of the published figures:",
+        *sources(reference, COLUMNS[kind] + ([("paper_table1", "paper, Table 1", "")] if kind == "table1" else [])),
+        "",
+        "## Learning curves",
+        "",
+    ]
+    for env in sorted({r.env_id for r in runs}):
+        png = plot_env(folder, env, [r for r in runs if r.env_id == env], variants)
+        lines.append(f"![{env}](curves/{png.name})")
+    lines += ["", "## Every run", "", *run_table(runs)]
+    text = "\n".join(lines) + "\n"
+    (folder / "report.md").write_text(text)
+    return text
+
+
+README_START = "<!-- results: generated by benchmarks/report.py from the CSVs; do not edit by hand -->"
+README_END = "<!-- end of results -->"
+
+
+def readme_block(results=RESULTS, reference=None):
+    """The README's Results block: each suite's tables and curves, from the same CSVs as report.md."""
+    reference = reference if reference is not None else load_reference()
+    results = Path(results)
+    lines = [README_START, "", SCORE_RULE]
+    for folder in suite_folders(results):
+        runs = load_runs(folder)
+        rel = folder.relative_to(ROOT).as_posix() if folder.is_relative_to(ROOT) else folder.name
+        seeds = ", ".join(map(str, sorted({r.seed for r in runs})))
+        steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in runs}))
+        lines += [
+            "",
+            f"### `{folder.name}`: {len(runs)} run{'s' if len(runs) > 1 else ''} (seeds {seeds}; {steps} steps each)",
+            "",
+            f"Commits, versions, machine, each run's score and the sources: [`{rel}/report.md`]({rel}/report.md).",
+            "",
+            *tables(folder, runs, reference, results, level="####"),
+            "",
+            " ".join(f'<img src="{rel}/curves/{env.replace("/", "-")}.png" width="32%">' for env in sorted({r.env_id for r in runs})),
+        ]
+    return "\n".join(lines + ["", README_END])
+
+
+def update_readme(path, block):
+    text = Path(path).read_text()
+    if README_START not in text or README_END not in text:
+        raise ValueError(f"{path} has no results markers ({README_START} ... {README_END})")
+    head, rest = text.split(README_START, 1)
+    tail = rest.split(README_END, 1)[1]
+    Path(path).write_text(head + block + tail)
+
+
+def suite_folders(results=RESULTS):
+    """The folders with run CSVs: the mujoco suites first, then table1, then atari."""
+    folders = [p for p in Path(results).iterdir() if p.is_dir() and any(p.glob("*__*__seed*.csv"))]
+    return sorted(folders, key=lambda p: (list(COLUMNS).index(suite_kind(p)), p.name))
+
+
+def curve(rows, grid, window=100):
+    """The mean return of the last `window` episodes finished by each step of `grid` (nan before the first)."""
+    import numpy as np
+
+    steps = np.array([r[0] for r in rows], dtype=float)
+    returns = np.array([r[1] for r in rows], dtype=float)
+    csum = np.concatenate([[0.0], np.cumsum(returns)])
+    out = np.full(len(grid), math.nan)
+    for i, step in enumerate(grid):
+        n = int(np.searchsorted(steps, step, side="right"))  # episodes finished by this step
+        if n:
+            k = min(window, n)
+            out[i] = (csum[n] - csum[n - k]) / k
+    return out
+
+
+def plot_env(folder, env, runs, variants):
+    """<folder>/curves/<env>.png: one line per variant, the mean over seeds with a ± std band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    total = max(int(r.meta["global_step"]) for r in runs)
+    grid = np.linspace(0, total, 201)[1:]
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for variant in [v for v in variants if any(r.variant == v for r in runs)]:
+        curves = np.array([curve(r.rows, grid) for r in runs if r.variant == variant])
+        with warnings.catch_warnings():  # before any seed's first episode ends, the mean is nan
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean, std = np.nanmean(curves, axis=0), np.nanstd(curves, axis=0)
+        label = f"{variant} ({len(curves)} seed{'s' if len(curves) > 1 else ''})"
+        (line,) = ax.plot(grid, mean, label=label, lw=1.4)
+        ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2, lw=0)
+    ax.set_title(env)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("return, mean of last 100 episodes")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    out = folder / "curves" / f"{env.replace('/', '-')}.png"
+    out.parent.mkdir(exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("suites", nargs="*", help="suite folders under benchmarks/results (default: every one with run CSVs)")
+    parser.add_argument("--results-dir", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    folders = [args.results_dir / s for s in args.suites] or suite_folders(args.results_dir)
+    for folder in folders:
+        if not folder.is_dir():
+            sys.exit(f"report.py: error: no folder {folder}")
+        try:
+            report(folder, results=args.results_dir)
+        except ValueError as e:
+            sys.exit(f"report.py: error: {e}")
+        print(f"wrote {folder / 'report.md'} and {folder / 'curves'}/")
+    if args.results_dir.resolve() == RESULTS:
+        update_readme(ROOT / "README.md", readme_block())
+        print("updated the Results block of README.md")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,242 @@
+"""benchmarks/run.py and benchmarks/report.py: the runner never loses or repeats work, rejects a bad
+grid before it starts anything, and the report's arithmetic is the paper's."""
+
+import csv
+import math
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from conftest import ROOT
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import report  # noqa: E402
+import run  # noqa: E402
+from common import read_csv, write_csv  # noqa: E402
+
+# One iteration of ppo_continuous.py's default batch is 2048 steps; InvertedPendulum is the cheapest env.
+TINY_GRID = ["--envs", "InvertedPendulum", "--seeds", "1"]
+
+
+def runner(*args, tmp_path, check=True, timeout=300):
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "run.py"), *args, "--results-dir", str(tmp_path / "results"),
+         "--runs-dir", str(tmp_path / "runs"), "--status-every", "1"],
+        capture_output=True, text=True, timeout=timeout,
+    )  # fmt: skip
+    if check and proc.returncode != 0:
+        raise AssertionError(f"run.py {' '.join(args)} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["nosuchsuite"], "unknown suite 'nosuchsuite'"),
+        (["table1", "--variants", "clip0.25"], "has no variant 'clip0.25'"),
+        (["mujoco", "--envs", "Hoppper-v5"], "unknown env id 'Hoppper-v5'"),
+        (["mujoco", "--envs", "CartPole-v1"], "needs a Box action space"),
+        (["mujoco", "--workers", "0"], "--workers must be positive"),
+    ],
+)
+def test_runner_rejects_a_bad_grid_before_starting(tmp_path, args, message):
+    proc = runner(*args, tmp_path=tmp_path, check=False)
+    assert proc.returncode != 0 and message in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "runs").exists(), "nothing may start"
+
+
+def test_check_grid_rejects_a_flag_the_script_lacks(tmp_path):
+    job = run.make_grid("mujoco", envs=["Hopper"], seeds=[1], results_root=tmp_path, runs_root=tmp_path)[0]
+    job.flags = ["--kl-target", "0.01"]  # ppo_kl_penalty.py's flag, not ppo_continuous.py's
+    with pytest.raises(ValueError, match="does not accept the flags --kl-target 0.01"):
+        run.check_grid([job])
+
+
+@pytest.mark.parametrize("suite", list(run.SUITES))
+def test_every_suite_is_a_valid_grid(suite):
+    """Each variant's flags parse with its script's own parser, and each env passes its checks."""
+    jobs = run.make_grid(suite)
+    spec = run.SUITES[suite]
+    assert len(jobs) == len(spec.variants) * len(spec.envs) * len(spec.seeds)
+    run.check_grid(jobs)
+
+
+def test_table1_rows_are_the_papers():
+    import tyro
+
+    variants = run.SUITES["table1"].variants
+    parsed = {name: (script, tyro.cli(run.load_script(script).Args, args=flags)) for name, (script, flags) in variants.items()}
+    assert parsed["no-clip"][1].init_beta == 0 and not parsed["no-clip"][1].adaptive_beta
+    assert [parsed[f"clip{e}"][1].clip_coef for e in ("0.1", "0.2", "0.3")] == [0.1, 0.2, 0.3]
+    for d in ("0.003", "0.01", "0.03"):
+        args = parsed[f"kl{d}"][1]
+        assert parsed[f"kl{d}"][0] == "ppo_kl_penalty.py" and args.adaptive_beta and args.kl_target == float(d) and args.init_beta == 1
+    for b in ("0.3", "1", "3", "10"):
+        args = parsed[f"beta{b}"][1]
+        assert not args.adaptive_beta and args.init_beta == float(b)
+    assert set(run.SUITES["table1"].envs) == set(run.MUJOCO) and len(run.MUJOCO) == 7
+
+
+def test_runner_finishes_skips_and_shares_identical_runs(tmp_path):
+    first = runner("mujoco", *TINY_GRID, "--total-timesteps", "4096", tmp_path=tmp_path)
+    out = tmp_path / "results" / run.results_folder("mujoco", 4096) / "InvertedPendulum-v5__clip0.2__seed1.csv"
+    assert out.exists(), first.stdout
+    meta, rows = read_csv(out)
+    for key in ("command", "commit", "versions", "machine", "wall_time_s"):
+        assert meta[key], key
+    assert meta["command"].startswith("python ppo_continuous.py ") and "--total-timesteps 4096" in meta["command"]
+    assert int(meta["global_step"]) == 4096 and "torch" in meta["versions"]
+    steps = [step for step, _, _ in rows]
+    assert len(rows) > 10 and steps == sorted(steps) and steps[-1] <= 4096
+    assert all(length > 0 for _, _, length in rows)
+    content = out.read_bytes()
+
+    again = runner("mujoco", *TINY_GRID, "--total-timesteps", "4096", tmp_path=tmp_path)
+    assert "1/1 runs finished, 0 to run" in again.stdout and "start" not in again.stdout
+    assert out.read_bytes() == content
+    attempts = (tmp_path / "runs" / run.results_folder("mujoco", 4096) / "InvertedPendulum-v5__clip0.2__seed1" / "attempts.txt").read_text().splitlines()
+    assert len(attempts) == 1, "a finished run is not run again"
+
+    # table1's clip0.2 row is the same run: copied, not run again.
+    shared = runner("table1", "--variants", "clip0.2", *TINY_GRID, "--total-timesteps", "4096", tmp_path=tmp_path)
+    assert "copied" in shared.stdout
+    assert (tmp_path / "results" / run.results_folder("table1", 4096) / "InvertedPendulum-v5__clip0.2__seed1.csv").read_bytes() == content
+    assert not (tmp_path / "runs" / run.results_folder("table1", 4096)).exists()
+
+
+def test_runner_resumes_an_interrupted_run(tmp_path):
+    total = 6 * 2048  # six iterations, with a checkpoint after each
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "table1", "--variants", "kl0.01", *TINY_GRID,
+           "--total-timesteps", str(total), "--save-every", "1", "--results-dir", str(tmp_path / "results"),
+           "--runs-dir", str(tmp_path / "runs"), "--status-every", "1"]  # fmt: skip
+    run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, (out, err)
+    assert "its checkpoint is kept" in out and "Traceback" not in err
+    saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert 0 < saved["global_step"] < total
+    csv_path = tmp_path / "results" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1.csv"
+    assert not csv_path.exists(), "an unfinished run has no CSV"
+
+    resumed = runner("table1", "--variants", "kl0.01", *TINY_GRID, "--total-timesteps", str(total), "--save-every", "1", tmp_path=tmp_path)
+    assert "resume InvertedPendulum-v5__kl0.01__seed1" in resumed.stdout
+    assert f"at step {saved['global_step']:,}" in (run_dir / "log.txt").read_text()
+    meta, rows = read_csv(csv_path)
+    assert int(meta["global_step"]) == total and int(meta["attempts"]) == 2
+    assert meta["command"].startswith("python ppo_kl_penalty.py ") and "beta_range" in meta
+    steps = [step for step, _, _ in rows]
+    assert steps == sorted(steps), "one curve, without a fold at the resume"
+    attempts = [line.split("\t") for line in (run_dir / "attempts.txt").read_text().splitlines()]
+    assert [a[4] for a in attempts] == ["start", "resume"] and [a[3] for a in attempts] == ["130", "0"]
+
+
+# ---------------------------------------------------------------- the report, on hand-made CSVs
+
+
+def fake_run(folder, env_id, variant, seed, last100_mean, steps=100_000):
+    """A CSV whose last 100 episodes average last100_mean, after 50 early episodes that must not count."""
+    returns = [-1e4] * 50 + [last100_mean - 1.0, last100_mean + 1.0] * 50
+    rows = [((i + 1) * steps // len(returns), r, 10) for i, r in enumerate(returns)]
+    header = [("command", "test"), ("env_id", env_id), ("seed", seed), ("global_step", steps), ("commit", "abc1234"),
+              ("versions", "test versions"), ("machine", "test machine"), ("wall_time_s", "60")]  # fmt: skip
+    write_csv(folder / f"{env_id}__{variant}__seed{seed}.csv", header, rows)
+
+
+def fake_random(results, env_id, returns):
+    path = results / "random" / f"{env_id}.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        f.write("# command: test\n")
+        writer = csv.writer(f)
+        writer.writerow(["episode", "episodic_return", "episodic_length"])
+        writer.writerows((i, r, 1) for i, r in enumerate(returns))
+
+
+def test_report_normalizes_as_the_paper_does(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    # Env A: random scores 0; clip0.2 scores 10 and 20 (mean 15, the best), no-clip 5.
+    # Env B: random scores -10; clip0.2 scores 10, no-clip 30 (the best).
+    fake_random(results, "A-v0", [-1.0, 1.0])
+    fake_random(results, "B-v0", [-12.0, -8.0])
+    fake_run(folder, "A-v0", "clip0.2", 1, 10.0)
+    fake_run(folder, "A-v0", "clip0.2", 2, 20.0)
+    fake_run(folder, "A-v0", "no-clip", 1, 5.0)
+    fake_run(folder, "B-v0", "clip0.2", 1, 10.0)
+    fake_run(folder, "B-v0", "no-clip", 1, 30.0)
+    # A variant run on env A only does not enter the common set of envs.
+    runs = report.load_runs(folder)
+    assert sorted(r.score for r in runs) == [5.0, 10.0, 10.0, 20.0, 30.0]
+    random = {"A-v0": report.random_score("A-v0", results), "B-v0": report.random_score("B-v0", results)}
+    assert random == {"A-v0": 0.0, "B-v0": -10.0}
+
+    norm, envs, best = report.normalized_scores(runs, random)
+    assert envs == ["A-v0", "B-v0"] and best == {"A-v0": "clip0.2", "B-v0": "no-clip"}
+    clip = ((10 - 0) / (15 - 0) + (20 - 0) / (15 - 0) + (10 + 10) / (30 + 10)) / 3
+    noclip = ((5 - 0) / (15 - 0) + (30 + 10) / (30 + 10)) / 2
+    assert norm["clip0.2"][0] == pytest.approx(clip) and norm["clip0.2"][1] == 3
+    assert norm["no-clip"][0] == pytest.approx(noclip) and norm["no-clip"][1] == 2
+
+    text = report.report(folder, results=results)
+    assert f"| clip0.2 | {clip:.2f} | 3 | 0.82 |" in text
+    assert f"| no-clip | {noclip:.2f} | 2 | -0.39 |" in text
+    assert "| kl0.01 | not run | 0 | 0.74 |" in text
+    assert "15.00 ± 7.07 (2)" in text  # A, clip0.2: mean and sample std of 10 and 20
+    assert "Seeds: 1, 2; 5 runs." in text and "abc1234" in text and "test machine" in text
+    assert (folder / "report.md").read_text() == text
+    for env in ("A-v0", "B-v0"):
+        png = folder / "curves" / f"{env}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+        assert f"curves/{env}.png" in text
+
+
+def test_report_uses_only_envs_every_variant_ran(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    for env in ("A-v0", "B-v0"):
+        fake_random(results, env, [0.0])
+        fake_run(folder, env, "clip0.2", 1, 10.0)
+    fake_run(folder, "A-v0", "kl0.01", 1, 20.0)
+    norm, envs, _ = report.normalized_scores(report.load_runs(folder), {"A-v0": 0.0, "B-v0": 0.0})
+    assert envs == ["A-v0"]
+    assert norm == {"clip0.2": (0.5, 1), "kl0.01": (1.0, 1)}
+
+
+def test_learning_curve_is_the_trailing_100_episode_mean():
+    rows = [(10 * (i + 1), float(i), 1) for i in range(250)]
+    grid = [5, 10, 995, 1000, 2500, 3000]
+    got = report.curve(rows, grid)
+    for step, value in zip(grid, got):
+        finished = [r for s, r, _ in rows if s <= step][-100:]
+        if finished:
+            assert value == pytest.approx(sum(finished) / len(finished))
+        else:
+            assert math.isnan(value)
+
+
+def test_reference_figures_have_a_source_each():
+    reference = report.load_reference()
+    assert len(reference) >= 30
+    assert all(source.strip() for _, _, source in reference.values())
+    assert {s for (c, _, s) in reference if c == "paper_table1"} == set(run.SUITES["table1"].variants)
+
+
+def test_readme_results_block_is_generated_from_the_committed_csvs():
+    """The README's Results block is what report.py makes from the CSVs in benchmarks/results."""
+    readme = (ROOT / "README.md").read_text()
+    start, end = readme.index(report.README_START), readme.index(report.README_END) + len(report.README_END)
+    assert readme[start:end] == report.readme_block(), "run python benchmarks/report.py"
+    for folder in report.suite_folders():
+        assert (folder / "report.md").exists()
+        for env in {r.env_id for r in report.load_runs(folder)}:
+            assert (folder / "curves" / f"{env}.png").exists(), (folder, env)
