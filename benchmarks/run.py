@@ -222,6 +222,16 @@ def finish(job):
     return score(rows)
 
 
+def running_elsewhere(job):
+    """The pid of a live process that is training this run (say, left by a runner that was killed)."""
+    try:
+        pid = int((job.run_dir / "pid").read_text())
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+    except (OSError, ValueError):
+        return None
+    return pid if job.script in cmdline and str(job.run_dir.name) in cmdline else None
+
+
 def last_step(job):
     """The latest step a running job printed, from its log (the scripts print one every 30 s)."""
     try:
@@ -279,6 +289,10 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
         while (todo and not stopping) or running:
             while todo and len(running) < workers and not stopping:
                 job = todo.pop(0)
+                other = running_elsewhere(job)
+                if other:
+                    print(f"skip   {job.name}: another process (pid {other}) is running it", flush=True)
+                    continue
                 job.run_dir.mkdir(parents=True, exist_ok=True)
                 resumed = job.checkpoint.exists()
                 cmd = job.command(save_every)
@@ -292,6 +306,7 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                 # stops each run exactly once, so that no second signal cuts a checkpoint save short.
                 proc = subprocess.Popen([sys.executable, *cmd[1:]], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
                                         env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
+                (job.run_dir / "pid").write_text(str(proc.pid))
                 running[proc] = (job, time.time(), commit_of(job.script), resumed, log)
                 job.progress = steps_at_start[job.name] = last_step(job) if resumed else 0
                 print(f"{'resume' if resumed else 'start '} {job.name}" + (f" at step {job.progress:,}" if resumed else ""), flush=True)

@@ -240,3 +240,16 @@ def test_readme_results_block_is_generated_from_the_committed_csvs():
         assert (folder / "report.md").exists()
         for env in {r.env_id for r in report.load_runs(folder)}:
             assert (folder / "curves" / f"{env}.png").exists(), (folder, env)
+
+
+def test_throughput_replaces_only_its_own_section(tmp_path):
+    import throughput
+
+    path = tmp_path / "throughput.md"
+    throughput.write_section(path, "mujoco", "## mujoco\n\n| a | 1 |\n")
+    throughput.write_section(path, "atari", "## atari\n\n| b | 2 |\n")
+    throughput.write_section(path, "mujoco", "## mujoco\n\n| a | 3 |\n")
+    text = path.read_text()
+    assert text.startswith("# Throughput") and "| a | 3 |" in text and "| a | 1 |" not in text
+    assert "| b | 2 |" in text and text.index("## mujoco") < text.index("## atari")
+    assert text.count("<!-- suite: mujoco -->") == 1
