@@ -347,7 +347,7 @@ def status_line(jobs, done, total, running, todo, steps_at_start, start):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog="suites: " + "; ".join(f"{k}: {v.about}" for k, v in SUITES.items()))
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog="suites: " + "; ".join(f"{k}: {v.about} (variants: {', '.join(v.variants)})" for k, v in SUITES.items()))
     parser.add_argument("suite", help=f"one of: {', '.join(SUITES)}")
     parser.add_argument("--variants", nargs="+", help="a subset of the suite's variants (default: all)")
     parser.add_argument("--envs", nargs="+", help="a subset of envs, e.g. Hopper Swimmer (default: the suite's)")
