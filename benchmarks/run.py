@@ -308,6 +308,8 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                                         env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
                 (job.run_dir / "pid").write_text(str(proc.pid))
                 running[proc] = (job, time.time(), commit_of(job.script), resumed, log)
+                if stopping:  # a signal came while this one was starting
+                    proc.terminate()
                 job.progress = steps_at_start[job.name] = last_step(job) if resumed else 0
                 print(f"{'resume' if resumed else 'start '} {job.name}" + (f" at step {job.progress:,}" if resumed else ""), flush=True)
             time.sleep(0.2)
@@ -316,8 +318,13 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                 log.close()
                 log_attempt(job, started, commit, time.time() - started, proc.returncode, resumed)
                 if proc.returncode == 0:
+                    try:
+                        result = finish(job)
+                    except Exception as e:  # say which run, and keep the others going
+                        failed += 1
+                        print(f"FAILED {job.name}: its results could not be read: {e!r}", flush=True)
+                        continue
                     done += 1
-                    result = finish(job)
                     job.progress = job.total_timesteps
                     print(f"done   {job.name}: score {result:.1f} ({done}/{total})", flush=True)
                 elif stopping:

@@ -11,7 +11,9 @@ CLIP_SCRIPTS = scripts_with("clipped_surrogate_loss")
 VALUE_SCRIPTS = scripts_with("value_loss")
 
 ratios = st.floats(0.01, 5.0)
-advantages = st.floats(-10.0, 10.0)
+# Subnormal advantages (below 2.2e-308) are left out: there a product underflows to 0 or not
+# depending only on the order of the multiplications, which says nothing about the loss.
+advantages = st.floats(-10.0, 10.0, allow_subnormal=False)
 clips = st.floats(0.05, 0.5)
 
 
