@@ -43,6 +43,7 @@ def machine():
 
 
 def read_run(run_dir):
+    """A finished run directory's checkpoint, its episodes (step, return, length), and beta's range if it has one."""
     import torch
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -50,8 +51,6 @@ def read_run(run_dir):
     acc.Reload()
     returns = acc.Scalars("charts/episodic_return")
     lengths = acc.Scalars("charts/episodic_length")
-    sps = acc.Scalars("charts/SPS")
-    wall = sum(b.wall_time - a.wall_time for a, b in zip(sps, sps[1:])) if len(sps) > 1 else 0.0
     checkpoint = torch.load(Path(run_dir) / "checkpoint.pt", map_location="cpu", weights_only=True)
     rows = [(r.step, r.value, int(l.value)) for r, l in zip(returns, lengths)]
     beta = None
@@ -60,7 +59,7 @@ def read_run(run_dir):
         betas = [e.value for e in acc.Scalars("losses/beta")]
         early = betas[: int(0.9 * len(betas))] or betas
         beta = f"{min(betas):.3g}..{max(betas):.3g} (first 90% of updates: {min(early):.3g}..{max(early):.3g})"
-    return checkpoint, rows, wall, beta
+    return checkpoint, rows, beta
 
 
 def write_csv(path, header, rows):
@@ -94,3 +93,12 @@ def read_csv(path):
 def score(rows):
     """A run's score: the mean return of its last 100 episodes."""
     return statistics.mean(r for _, r, _ in rows[-100:])
+
+
+def replace_between(text, start, end, block):
+    """`text` with everything from the marker `start` to the marker `end` replaced by `block`
+    (which carries the markers itself), or None when `text` lacks a marker."""
+    if start not in text or end not in text:
+        return None
+    head, rest = text.split(start, 1)
+    return head + block + rest.split(end, 1)[1]

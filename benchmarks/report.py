@@ -30,7 +30,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import read_csv, score  # noqa: E402
+from common import read_csv, replace_between, score  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 REFERENCE = ROOT / "benchmarks" / "reference_figures.csv"
@@ -296,12 +296,10 @@ def readme_block(results=RESULTS, reference=None):
 
 
 def update_readme(path, block):
-    text = Path(path).read_text()
-    if README_START not in text or README_END not in text:
+    text = replace_between(Path(path).read_text(), README_START, README_END, block)
+    if text is None:
         raise ValueError(f"{path} has no results markers ({README_START} ... {README_END})")
-    head, rest = text.split(README_START, 1)
-    tail = rest.split(README_END, 1)[1]
-    Path(path).write_text(head + block + tail)
+    Path(path).write_text(text)
 
 
 def suite_folders(results=RESULTS):
