@@ -5,7 +5,6 @@ we follow "The 37 Implementation Details of PPO" (Huang et al. 2022), cited as "
 their 13) and "continuous detail N" (of their 9 for continuous actions).
 
     python ppo_continuous.py                          # Hopper-v5, 1M steps
-    python ppo_continuous.py --env-id Walker2d-v5 --seed 2
     python ppo_continuous.py --compile                # the same algorithm, compiled by torch.compile
     python ppo_continuous.py --help                   # every flag, with its default
 
@@ -273,8 +272,8 @@ def train(args):
                 global_step += N
                 obs[step] = next_obs
                 action, logprobs[step], _, values[step] = policy(next_obs)
-                actions[step] = action  # the unclipped sample: its log-prob is the one the ratio uses
-                # Continuous detail 5: clip the action to the valid range only for the env.
+                actions[step] = action
+                # Continuous detail 5: clip the action to the valid range for the env only; the ratio uses the sample's log-prob.
                 action = np.clip(action.cpu().numpy(), envs.single_action_space.low, envs.single_action_space.high)
                 next_obs_raw, reward, term, trunc, infos = envs.step(action)
                 next_obs = torch.as_tensor(agent.normalize_obs(next_obs_raw, update=True), device=device)
@@ -283,15 +282,17 @@ def train(args):
                     # Continuous details 8-9: divide by the running std of the discounted return (no mean subtracted), clip to [-10, 10].
                     discounted_return = discounted_return * args.gamma + reward
                     agent.return_rms.update(discounted_return)
+                    discounted_return[term | trunc] = 0.0
                     rewards[step] = torch.as_tensor(np.clip(reward / np.sqrt(agent.return_rms.var + 1e-8), -10.0, 10.0))
-                episode_return, episode_length = episode_return + reward, episode_length + 1  # the env's own return
-                for i in np.flatnonzero(term | trunc):
-                    if trunc[i]:  # bootstrap from the true final observation (normalized, not counted)
-                        final_values[step, i] = agent.get_value(torch.as_tensor(agent.normalize_obs(infos["final_obs"][i]), device=device))
+                episode_return, episode_length = episode_return + reward, episode_length + 1
+                finished = term | trunc  # an episode ended: log its return, the raw rewards' sum
+                for i in np.flatnonzero(trunc):  # bootstrap from the true final observation of an episode cut by the time limit
+                    final_values[step, i] = agent.get_value(torch.as_tensor(agent.normalize_obs(infos["final_obs"][i]), device=device))
+                for i in np.flatnonzero(finished):
                     recent_returns.append(episode_return[i])
                     writer.add_scalar("charts/episodic_return", episode_return[i], global_step)
                     writer.add_scalar("charts/episodic_length", episode_length[i], global_step)
-                    discounted_return[i], episode_return[i], episode_length[i] = 0.0, 0.0, 0
+                    episode_return[i], episode_length[i] = 0.0, 0
 
             # ADVANTAGES: next_values[t] = V(s_{t+1}), or V(final observation) where an episode was truncated.
             next_values = torch.cat([values[1:], agent.get_value(next_obs)[None]])
@@ -365,12 +366,11 @@ def evaluate(args):
     return returns
 
 
-# MACHINERY: checkpoints and argument checks
+# MACHINERY: checkpoints and argument checks. A resumed run takes how to run it (RUNTIME_FIELDS) from the command line.
 RUNTIME_FIELDS = ("device", "compile", "torch_threads", "capture_video", "save_every", "resume", "eval_checkpoint", "eval_episodes")
 
 
 def resumed_args(checkpoint, args):
-    """The Args of a checkpoint's run, in the checkpoint's folder, run as this command line says (RUNTIME_FIELDS)."""
     run_dir = os.path.dirname(os.path.abspath(args.resume or args.eval_checkpoint))
     return Args(**{**checkpoint["args"], **{k: getattr(args, k) for k in RUNTIME_FIELDS}, "run_dir": run_dir})
 

@@ -97,11 +97,14 @@ def test_game_over_table(term, trunc, lives, new_lives, expected):
 def test_cnn_shapes_and_scaling():
     agent = atari.Agent(6)
     obs = torch.randint(0, 256, (3, 4, 84, 84), dtype=torch.uint8)
-    logits, value = agent(obs)
-    assert logits.shape == (3, 6) and value.shape == (3,)
-    # the frames are scaled to [0, 1] inside the network
+    action, logprob, entropy, value = agent.get_action_and_value(obs)
+    assert action.shape == logprob.shape == entropy.shape == value.shape == (3,)
+    # the frames are scaled to [0, 1] inside the network, and the log-prob is that of a softmax policy
     hidden = agent.network(obs.float() / 255.0)
-    torch.testing.assert_close(logits, agent.actor(hidden))
+    expected = torch.log_softmax(agent.actor(hidden), -1).gather(-1, action[:, None]).squeeze(-1)
+    torch.testing.assert_close(logprob, expected)
+    torch.testing.assert_close(value, agent.critic(hidden).squeeze(-1))
+    torch.testing.assert_close(agent.get_value(obs), value)
 
 
 def test_orthogonal_init_gains():

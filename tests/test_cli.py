@@ -128,7 +128,7 @@ def test_eval_uses_the_saved_statistics(script, tmp_path):
     run_dir, _ = train_tiny(script, tmp_path)
     checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"))
     checkpoint["agent"]["obs_rms._extra_state"]["mean"] += 5.0
-    module.save_checkpoint(checkpoint, str(tmp_path / "shifted.pt"))
+    torch.save(checkpoint, tmp_path / "shifted.pt")
     a = run_cli(script, "--eval-checkpoint", run_dir / "checkpoint.pt", "--eval-episodes", "2", cwd=tmp_path).stdout
     b = run_cli(script, "--eval-checkpoint", tmp_path / "shifted.pt", "--eval-episodes", "2", cwd=tmp_path).stdout
     assert a.split("return")[1] != b.split("return")[1]
@@ -148,6 +148,20 @@ def test_video_is_written_and_not_blank(script, tmp_path):
 
 
 BAD_INPUTS = [
+    (["--learning-rate", "nan"], "--learning-rate must be a finite number, got nan"),
+    (["--learning-rate", "inf"], "--learning-rate must be a finite number, got inf"),
+    (["--ent-coef", "nan"], "--ent-coef must be a finite number"),
+    (["--max-grad-norm", "nan"], "--max-grad-norm must be a finite number"),
+    (["--gamma", "-inf"], "--gamma must be a finite number"),
+    (["--learning-rate", "0"], "--learning-rate must be positive"),
+    (["--clip-coef", "-0.1"], "--clip-coef must be positive"),
+    (["--gamma", "1.5"], "--gamma must be in [0, 1]"),
+    (["--gae-lambda", "-0.1"], "--gae-lambda must be in [0, 1]"),
+    (["--ent-coef", "-1"], "--ent-coef must be in [0, inf]"),
+    (["--update-epochs", "0"], "--update-epochs must be positive"),
+    (["--device", "tpu"], "--device tpu is not available"),
+    (["--run-dir", "afile"], "is a file"),
+    (["--run-dir", "oldrun"], "already holds a run: continue it with --resume oldrun/checkpoint.pt"),
     (["--env-id", "NoSuchEnv-v0"], "unknown env id"),
     (["--env-id", "{wrong_action_space_env}"], "action space"),
     (["--num-steps", "100", "--minibatch-size", "64"], "does not divide"),
@@ -163,6 +177,9 @@ BAD_INPUTS = [
 @pytest.mark.parametrize("args,message", BAD_INPUTS, ids=[m for _, m in BAD_INPUTS])
 def test_bad_input_is_one_clear_line_before_training(script, tmp_path, args, message):
     (tmp_path / "corrupt.pt").write_bytes(b"\x80\x02this is not a checkpoint")
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "oldrun").mkdir()
+    (tmp_path / "oldrun" / "events.out.tfevents.1.host").write_bytes(b"")
     torch.save({"some": "dict"}, tmp_path / "notacheckpoint.pt")
     args = [a.format(**TINY[script]) for a in args]
     proc = run_cli(script, *args, cwd=tmp_path, check=False)
@@ -187,3 +204,64 @@ def test_atari_id_points_to_the_atari_script(script, tmp_path):
     proc = run_cli(script, "--env-id", "ALE/Breakout-v5", cwd=tmp_path, check=False)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "Use ppo_atari.py" in lines[0], proc.stderr
+
+
+def test_divergence_stops_with_one_line_and_keeps_the_last_finite_checkpoint(script, tmp_path):
+    run_dir, _ = train_tiny(script, tmp_path)
+    path = run_dir / "checkpoint.pt"
+    checkpoint = torch.load(path, weights_only=True)
+    # Roll back one iteration and continue with a learning rate at which any of these networks diverges.
+    checkpoint["args"]["learning_rate"] = 1000.0
+    checkpoint["iteration"] -= 1
+    checkpoint["global_step"] -= checkpoint["global_step"] // (checkpoint["iteration"] + 1)
+    torch.save(checkpoint, path)
+    before = path.read_bytes()
+    proc = run_cli(script, "--resume", path, cwd=tmp_path, check=False)
+    assert proc.returncode == 1, (proc.stdout, proc.stderr)
+    lines = [line for line in proc.stderr.strip().splitlines() if "Profiler" not in line]
+    assert len(lines) == 1 and "not finite after iteration" in lines[0] and "smaller --learning-rate" in lines[0], proc.stderr
+    assert path.read_bytes() == before, "the last finite checkpoint stays on disk"
+    assert all(torch.isfinite(v).all() for v in torch.load(path, weights_only=True)["agent"].values() if isinstance(v, torch.Tensor))
+
+
+@pytest.mark.parametrize("script", ["ppo_continuous.py"])
+def test_compile_runs_the_same_algorithm(script, tmp_path):
+    # --compile changes how the update runs, not what it computes: the same losses, to float tolerance.
+    eager, _ = train_tiny(script, tmp_path, "eager", "--seed", "5")
+    compiled, _ = train_tiny(script, tmp_path, "compiled", "--seed", "5", "--compile")
+    a, b = tb_scalars(eager), tb_scalars(compiled)
+    assert a["charts/episodic_return"][:3] == b["charts/episodic_return"][:3], "the first rollout samples the same actions"
+    for tag in ["losses/policy_loss", "losses/value_loss", "losses/approx_kl"]:
+        np.testing.assert_allclose([v for _, v in a[tag]], [v for _, v in b[tag]], rtol=1e-3, atol=1e-5, err_msg=tag)
+
+
+def test_video_follows_the_walker(tmp_path):
+    # A Hopper carried 40 m down its track while it is filmed: in the last frame of the video, the tracking
+    # camera still shows it; a fixed camera, as a control, shows empty floor. The body is Hopper's brownish
+    # (0.8, 0.6, 0.4); the floor and the sky are blue and grey.
+    import os
+
+    import gymnasium as gym
+    import imageio.v3 as iio
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    module = load_script("ppo_continuous.py")
+
+    def last_frame_body_pixels(env, video_dir):
+        env.reset(seed=0)
+        qpos, qvel = env.unwrapped.init_qpos.copy(), env.unwrapped.init_qvel.copy()
+        for t in range(40):
+            qpos[0] = float(t)  # 1 m per step: far out of a fixed camera's view
+            env.unwrapped.set_state(qpos, qvel)
+            env.step(np.zeros(3))
+        env.close()
+        frames = np.stack(list(iio.imiter(next(video_dir.glob("*.mp4"))))).astype(int)
+        r, g, b = frames[..., 0], frames[..., 1], frames[..., 2]
+        body = ((r > g + 20) & (g > b + 10)).sum(axis=(1, 2))
+        assert len(frames) > 30 and body[0] > 2000, "the robot is in the first frame"
+        return int(body[-1])
+
+    tracked = module.make_env("Hopper-v5", capture_video=True, video_dir=str(tmp_path / "tracked"))
+    fixed = gym.wrappers.RecordVideo(gym.make("Hopper-v5", render_mode="rgb_array", camera_id=-1), str(tmp_path / "fixed"))
+    assert last_frame_body_pixels(tracked, tmp_path / "tracked") > 2000
+    assert last_frame_body_pixels(fixed, tmp_path / "fixed") < 30, "the check tells a visible robot from empty floor"

@@ -105,7 +105,7 @@ def test_beta_is_logged_adapted_and_restored_on_resume(tmp_path):
     # Roll the checkpoint back to after iteration 1 with a distinctive beta; the resumed iteration 2
     # must use it.
     checkpoint.update(iteration=1, global_step=64, beta=7.0)
-    kl_script.save_checkpoint(checkpoint, str(run_dir / "checkpoint.pt"))
+    torch.save(checkpoint, run_dir / "checkpoint.pt")
     run_cli(script, "--resume", run_dir / "checkpoint.pt", cwd=tmp_path)
     assert tb_scalars(run_dir)["losses/beta"] == [(64, 1.0), (128, 7.0)]
     assert kl_script.load_checkpoint(str(run_dir / "checkpoint.pt"))["beta"] == 14.0
