@@ -11,11 +11,16 @@ them alike. Each suite's table reports the median steps/s of each case and the r
 replaces that suite's section of benchmarks/results/throughput.md, together with the command,
 commit, versions and machine; the other suite's section is kept as it was measured.
 
-What is timed, for each case, is the learning itself on identical settings, after imports and
-model construction:
-- ours: `train(args)` of the script, rollout + update + TensorBoard logging + checkpointing;
+What is timed, for each case, is the learning itself on identical settings, in its steady state:
+from the end of the first iteration (rollout + update) to the end of the last, so that neither
+imports, model construction nor torch.compile's compilation count. The time to the end of the
+first iteration is reported beside it: for `--compile`, less the eager script's, that is the
+compilation's cost.
+- ours: `train(args)` of the script, rollout + update + TensorBoard logging + checkpointing, eager
+  and with `--compile`; the iteration ends are the wall times of its `charts/SPS` events;
 - the peers: `model.learn()` of Stable-Baselines3's PPO with the same hyperparameters, network and
-  normalization (VecNormalize), once with torch's default threads and once with 1 thread;
+  normalization (VecNormalize), once with torch's default threads and once with 1 thread; the
+  iteration ends are its rollout ends;
 - env: the environment alone, stepped with random actions: the ceiling for any agent.
 """
 
@@ -42,14 +47,14 @@ SUITES = {
     "mujoco": {
         "env_id": "Hopper-v5",
         "steps": 10240,  # 5 rollouts of 2048
-        "ours": ["ppo_continuous.py", "ppo_kl_penalty.py"],
+        "ours": ["ppo_continuous.py", "ppo_continuous.py --compile", "ppo_kl_penalty.py"],
         "peers": ["sb3_ppo_mujoco", "sb3_ppo_mujoco_1thread"],
         "settings": "1 env, T=2048, K=10 epochs, minibatch 64, 64x64 tanh MLPs",
     },
     "atari": {
         "env_id": "BreakoutNoFrameskip-v4",
-        "steps": 4096,  # 4 rollouts of 8 x 128
-        "ours": ["ppo_atari.py"],
+        "steps": 6144,  # 6 rollouts of 8 x 128
+        "ours": ["ppo_atari.py", "ppo_atari.py --compile"],
         "peers": ["sb3_ppo_atari"],
         "settings": "8 envs, T=128, K=3 epochs, minibatch 256, Nature CNN, lr and clip annealed",
     },
@@ -59,25 +64,44 @@ SUITES = {
 # WORKERS: each runs in its own process and prints one JSON line {"sps": ...}.
 
 
-def warm_up_torch():
-    # One-off costs that are not learning: the first fused Adam loads its kernels (about 1 s).
-    import torch
+def steady_rate(start, ends):
+    """(steps/s from the first iteration's end to the last's, seconds to the first end); ends: [(step, time)]."""
+    (first_step, first_time), (last_step, last_time) = ends[0], ends[-1]
+    return (last_step - first_step) / (last_time - first_time), first_time - start
 
-    torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], fused=True)
 
+def measure_ours(case, env_id, steps):
+    import tyro
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-def measure_ours(script, env_id, steps):
+    script, *flags = case.split()
     module = load_script(script)
-    import gymnasium  # noqa: F401  (imports are not timed, as for the peer)
-    from torch.utils.tensorboard import SummaryWriter  # noqa: F401
-
-    warm_up_torch()
     with tempfile.TemporaryDirectory() as tmp:
-        args = module.Args(env_id=env_id, total_timesteps=steps, run_dir=tmp, seed=1)  # the script's defaults
+        args = tyro.cli(module.Args, args=[*flags, "--env-id", env_id, "--total-timesteps", str(steps), "--run-dir", tmp])  # the defaults
         module.check_args(args)
-        start = time.perf_counter()
+        start = time.time()
         module.train(args)
-        return steps / (time.perf_counter() - start)
+        acc = EventAccumulator(tmp)
+        acc.Reload()
+        return steady_rate(start, [(e.step, e.wall_time) for e in acc.Scalars("charts/SPS")])
+
+
+def rollout_ends():
+    """An SB3 callback that records (steps, time) at the end of each rollout."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Ends(BaseCallback):
+        def __init__(self):
+            super().__init__()
+            self.ends = []
+
+        def _on_step(self):
+            return True
+
+        def _on_rollout_end(self):
+            self.ends.append((self.num_timesteps, time.time()))
+
+    return Ends()
 
 
 def measure_sb3_ppo_mujoco(env_id, steps, threads=None):
@@ -98,9 +122,15 @@ def measure_sb3_ppo_mujoco(env_id, steps, threads=None):
         policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=torch.nn.Tanh, log_std_init=0.0),
         device="cpu", seed=1, verbose=0,
     )  # fmt: skip
-    start = time.perf_counter()
-    model.learn(total_timesteps=steps)
-    return steps / (time.perf_counter() - start)
+    return learn(model, steps)
+
+
+def learn(model, steps):
+    """SB3's steady rate, measured as ours: from the end of its first iteration to the end of its last.
+    SB3 updates after each rollout end, so one more rollout closes the last update."""
+    ends, start = rollout_ends(), time.time()
+    model.learn(total_timesteps=steps + model.n_steps * model.n_envs, callback=ends)
+    return steady_rate(start, ends.ends[1:])
 
 
 def measure_sb3_ppo_atari(env_id, steps):
@@ -121,9 +151,7 @@ def measure_sb3_ppo_atari(env_id, steps):
         gamma=0.99, gae_lambda=0.95, ent_coef=0.01, vf_coef=1.0, max_grad_norm=0.5,
         device="cpu", seed=1, verbose=0,
     )  # fmt: skip
-    start = time.perf_counter()
-    model.learn(total_timesteps=steps)
-    return steps / (time.perf_counter() - start)
+    return learn(model, steps)
 
 
 def measure_atari_env(env_id, steps):
@@ -136,7 +164,7 @@ def measure_atari_env(env_id, steps):
     start = time.perf_counter()
     for _ in range(steps // envs.num_envs):
         envs.step(rng.integers(0, envs.single_action_space.n, size=envs.num_envs))
-    return steps / (time.perf_counter() - start)
+    return steps / (time.perf_counter() - start), None
 
 
 def measure_env(env_id, steps):
@@ -150,11 +178,11 @@ def measure_env(env_id, steps):
         _, _, term, trunc, _ = env.step(env.action_space.sample())
         if term or trunc:
             env.reset()
-    return steps / (time.perf_counter() - start)
+    return steps / (time.perf_counter() - start), None
 
 
 def run_worker(case, env_id, steps):
-    if case.endswith(".py"):
+    if case.startswith("ppo_"):
         sps = measure_ours(case, env_id, steps)
     elif case == "sb3_ppo_atari":
         sps = measure_sb3_ppo_atari(env_id, steps)
@@ -168,7 +196,7 @@ def run_worker(case, env_id, steps):
         sps = measure_env(env_id, steps)
     else:
         raise ValueError(case)
-    print(json.dumps({"sps": sps}))
+    print(json.dumps({"sps": sps[0], "first_iteration_s": sps[1]}))
 
 
 # ORCHESTRATION
@@ -179,7 +207,8 @@ def measure(case, env_id, steps):
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     if proc.returncode != 0:
         raise SystemExit(f"{case} failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])["sps"]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    return result["sps"], result["first_iteration_s"]
 
 
 def commit():
@@ -225,34 +254,44 @@ def measure_suite(name, steps, repeats):
     """Measure one suite's cases in alternation; return its markdown table."""
     suite = SUITES[name]
     env_id = suite["env_id"]
-    ours = [s for s in suite["ours"] if (ROOT / s).exists()]
+    ours = [case for case in suite["ours"] if (ROOT / case.split()[0]).exists()]
     cases = [*ours, *suite["peers"], "env"]
-    samples = {case: [] for case in cases}
+    samples, firsts = {case: [] for case in cases}, {case: [] for case in cases}
     total, done, start = len(cases) * repeats, 0, time.time()
     for repeat in range(repeats):
         for case in cases:
-            sps = measure(case, env_id, steps)
+            sps, first = measure(case, env_id, steps)
             samples[case].append(sps)
+            firsts[case].append(first)
             done += 1
             eta = (time.time() - start) / done * (total - done)
-            print(f"[{done}/{total}] {case:<20} {sps:8.0f} steps/s   (ETA {eta:4.0f} s)", flush=True)
+            print(f"[{done}/{total}] {case:<28} {sps:8.0f} steps/s   (ETA {eta:4.0f} s)", flush=True)
 
     median = {case: statistics.median(v) for case, v in samples.items()}
+    first = {case: statistics.median(v) if None not in v else None for case, v in firsts.items()}
     peers, env = suite["peers"], median["env"]
     command = "python benchmarks/throughput.py " + " ".join(sys.argv[1:])
     lines = [
         f"## {name} ({env_id})",
         "",
-        "| case | median steps/s | samples | " + " | ".join(f"ratio to {p}" for p in peers) + " | fraction of env-only |",
-        "|---|---|---|" + "---|" * len(peers) + "---|",
+        "| case | median steps/s | samples | " + " | ".join(f"ratio to {p}" for p in peers) + " | fraction of env-only | first iteration |",
+        "|---|---|---|" + "---|" * len(peers) + "---|---|",
     ]
     for case in cases:
         ratios = " | ".join(f"{median[case] / median[p]:.2f}x" for p in peers)
-        lines.append(f"| {case} | {median[case]:.0f} | {', '.join(f'{s:.0f}' for s in samples[case])} | {ratios} | {median[case] / env:.2f} |")
+        first_s = f"{first[case]:.1f} s" if first[case] is not None else "–"
+        lines.append(f"| {case} | {median[case]:.0f} | {', '.join(f'{s:.0f}' for s in samples[case])} | {ratios} | {median[case] / env:.2f} | {first_s} |")
+    for case in ours:
+        eager = case.replace(" --compile", "")
+        if case != eager and first[eager] is not None:
+            lines += ["", f"- Compilation: `{case}` takes {first[case] - first[eager]:.1f} s longer than `{eager}` to the end of its first"
+                          " iteration (medians); that is torch.compile's one-off cost, left out of the steps/s."]  # fmt: skip
     lines += [
         "",
         f"- Settings: {env_id}, {suite['settings']};"
         f" {steps:,} steps per measurement, {repeats} measurements of each case, in alternation; the median is shown.",
+        "- Steps/s is the steady rate, from the end of the first iteration (rollout and update) to the end of the last;"
+        " 'first iteration' is the time from the start of `train()` or `learn()` to the end of the first.",
         "- Peers: Stable-Baselines3's PPO with the same hyperparameters and network; `sb3_ppo_mujoco` (with VecNormalize)"
         " and `sb3_ppo_atari` (with its Atari wrappers and a 4-frame stack) run with torch's default threads, as SB3 users"
         " run it, `sb3_ppo_mujoco_1thread` with 1 thread, as ppo_continuous.py. `env` is the environment alone with random"
