@@ -163,7 +163,7 @@ def check_grid(jobs):
             continue
         seen.add(key)
         module = load_script(job.script)
-        argv = job.command()[2:]
+        argv = job.command()[2:-2]  # without --run-dir: a run's folder is the runner's, which resumes what it holds
         try:
             args = tyro.cli(module.Args, args=argv, console_outputs=False)
         except SystemExit:
