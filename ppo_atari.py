@@ -356,7 +356,8 @@ def evaluate(args):
     for game in range(args.eval_episodes):
         (next_obs, _), done, game_return, frames = envs.reset(seed=args.seed + game), False, 0.0, []
         while not done:
-            frames.append(next_obs[0, -1].copy())
+            if args.capture_video:
+                frames.append(next_obs[0, -1].copy())
             with torch.no_grad():
                 action, _, _, _ = agent.get_action_and_value(torch.as_tensor(next_obs, device=device))
             next_obs, reward, term, trunc, _ = envs.step(action.cpu().numpy())
