@@ -1,8 +1,7 @@
-"""PPO-Clip for Atari, in one file: Proximal Policy Optimization (Schulman et al. 2017, arXiv:1707.06347)
-as §6.4 ran it, a CNN shared by policy and value in the objective L^{CLIP+VF+S} (eq. 9), 8 actors, and
-alpha annealing the learning rate and the clip range (Table 5). Where the paper is silent we follow "The
-37 Implementation Details of PPO" (Huang et al. 2022), cited as "core detail N" (of their 13) and "atari
-detail N" (of their 9 for Atari). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes.
+"""PPO-Clip for Atari, in one file: Proximal Policy Optimization (Schulman et al. 2017, arXiv:1707.06347) as §6.4 ran
+it: a CNN shared by policy and value in L^{CLIP+VF+S} (eq. 9), 8 actors, and alpha annealing the learning rate and the
+clip range (Table 5). Where the paper is silent we follow "The 37 Implementation Details of PPO" (Huang et al. 2022):
+"core detail N" (of 13) and "atari detail N" (of 9). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes.
 
     python ppo_atari.py                                  # Breakout, 10M steps (40M frames)
     python ppo_atari.py --env-id PongNoFrameskip-v4 --total-timesteps 1000000
@@ -37,10 +36,12 @@ class Args:
     compile: bool = False  # apply torch.compile to the policy step and the minibatch update (a slower start, a faster run)
     torch_threads: int = 2  # torch CPU threads
     run_dir: str | None = None  # where TensorBoard logs and the checkpoint go (default: runs/{env_id}__{exp_name}__{seed}__{time})
-    capture_video: bool = False  # record what the agent sees: games 0, 1, 8, 27, ... of the first env in training, every evaluation game
+    capture_video: bool = False  # film games 0, 1, 8, 27, ... of the first env in training, and every evaluation game, in colour
     # Algorithm: defaults are the paper's Atari settings (Table 5)
     env_id: str = "BreakoutNoFrameskip-v4"  # an Atari game: a gymnasium ALE id (BreakoutNoFrameskip-v4, ALE/Breakout-v5) or a name (Breakout)
     total_timesteps: int = 10_000_000  # total agent steps over all envs (paper: 10M steps = 40M frames)
+    max_episode_frames: int = 108_000  # truncate a game after this many frames of play (30 minutes at 60 Hz)
+    fire_on_life_loss: bool = False  # also press FIRE after a lost life, as baselines' wrappers did (ale-py: only at a game's start)
     learning_rate: float = 2.5e-4  # Adam step size at the start, 2.5e-4 x alpha (paper: 2.5e-4)
     num_envs: int = 8  # number of parallel actors N (paper: 8)
     num_steps: int = 128  # steps per actor in each rollout, the horizon T (paper: 128)
@@ -52,9 +53,9 @@ class Args:
     update_epochs: int = 3  # epochs K over each rollout (paper: 3; CleanRL: 4)
     norm_adv: bool = True  # normalize advantages per minibatch (core detail 7)
     clip_coef: float = 0.1  # clip range epsilon of L^CLIP at the start (paper: 0.1 x alpha)
-    clip_vloss: bool = True  # clip the value loss around the old values (core detail 9)
+    clip_vloss: bool = True  # clip the value loss around the old values with the fixed clip_coef (core detail 9; not in eq. 9)
     ent_coef: float = 0.01  # entropy bonus coefficient c2 (paper: 0.01)
-    vf_coef: float = 1.0  # value loss coefficient c1 (paper: 1; CleanRL: 0.5)
+    vf_coef: float = 1.0  # c1 of eq. 9, on the squared error (V - V_targ)^2 (paper: 1; CleanRL's 0.5 on half of it is 0.25 here)
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
     save_every: int = 50  # write the checkpoint every this many iterations (it is also written at the end and on Ctrl-C)
@@ -99,27 +100,26 @@ def clipped_surrogate_loss(ratio, advantages, clip_coef):
 
 
 def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
-    """Half the squared error of V against the returns, optionally clipped (core detail 9).
+    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9).
 
     The clipped form is baselines' ppo2, not the paper's: the larger of the errors of the new value and
     of the old value moved at most clip_coef towards it. Engstrom et al. (2020) found no gain in it."""
     v_loss_unclipped = (newvalue - returns) ** 2
     if not clip_vloss:
-        return 0.5 * v_loss_unclipped.mean()
+        return v_loss_unclipped.mean()
     v_clipped = oldvalue + torch.clamp(newvalue - oldvalue, -clip_coef, clip_coef)
-    return 0.5 * torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
+    return torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
 
 
 # ENVIRONMENT
 def game_name(env_id):
-    """'BreakoutNoFrameskip-v4', 'ALE/Breakout-v5', 'Breakout' or 'breakout' -> the ROM name 'breakout'."""
+    """'BreakoutNoFrameskip-v4', 'ALE/Breakout-v5', 'Breakout', 'breakout' -> the ROM name in ALE/<Name>-v5's spec, or None."""
     import ale_py
-    import gymnasium as gym
-    gym.register_envs(ale_py)
+    import gymnasium as gym  # importing ale_py registered its games
     ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # no banner on stderr
-    name = re.sub(r"(NoFrameskip|Deterministic)?(-v\d+)?$", "", env_id.split("/")[-1])
-    spec = gym.registry.get(f"ALE/{name}-v5")  # a registered game knows its ROM's name (UpNDown -> up_n_down)
-    return spec.kwargs["game"] if spec else name.lower()
+    name = re.sub(r"(NoFrameskip|Deterministic)?(-v\d+)?$", "", env_id.split("/")[-1]).lower()
+    games = {key[4:-3].lower(): spec.kwargs["game"] for key, spec in gym.registry.items() if key.startswith("ALE/") and key.endswith("-v5")}
+    return games.get(name, name if name in games.values() else None)
 
 
 def make_envs(args, num_envs=None, training=True):
@@ -127,31 +127,38 @@ def make_envs(args, num_envs=None, training=True):
     import ale_py
     return ale_py.AtariVectorEnv(
         game_name(args.env_id), num_envs or args.num_envs, num_threads=min(num_envs or args.num_envs, os.cpu_count() or 1),
+        max_num_frames_per_episode=args.max_episode_frames,  # a time limit: a truncation, whose value is bootstrapped
         repeat_action_probability=0.0,  # no sticky actions: the paper's NoFrameskip-v4 games are deterministic but for the noops
         noop_max=30,  # atari detail 1: up to 30 no-ops at the start of each game
         frameskip=4, maxpool=True,  # atari detail 2: repeat each action for 4 frames, max-pool the last two
         life_loss_info=training,  # atari detail 3: a lost life ends an episode for learning, but the game (and its score) go on
-        use_fire_reset=True,  # atari detail 4: press FIRE at the start of each game that needs it (not after a lost life)
+        use_fire_reset=True,  # atari detail 4: press FIRE at the start of each game that needs it (after a lost life: see train())
         img_height=84, img_width=84, grayscale=True, stack_num=4,  # atari details 5 and 7: 84x84 grayscale, the last 4 frames
         reward_clipping=False,  # atari detail 6 is in train(), where the raw score is logged too
         autoreset_mode="SameStep",  # as in ppo_continuous.py: the step that ends a game returns the next one's first frame
     )  # fmt: skip
 
 
-def game_over(terminations, truncations, lives, new_lives):
-    """Which envs ended a whole game this step: a termination that lost no life (with same-step autoreset,
-    new_lives is then the next game's count), or a truncation.
-    >>> game_over(np.array([True, True, True]), np.array([False] * 3), np.array([5, 1, 0]), np.array([4, 5, 0]))
-    array([False,  True,  True])
-    """
-    return (terminations & ~(new_lives < lives)) | truncations
+def game_over(terminations, truncations, frame_numbers, new_frame_numbers):
+    """Which envs ended a whole game: ALE's episode_frame_number restarts at a new game, and counts on after a lost life."""
+    return (terminations | truncations) & (new_frame_numbers < frame_numbers)
 
 
-def write_video(frames, path, scale=4):
-    """Grayscale 84x84 frames, what the agent sees, -> an mp4 scaled up 4x."""
-    import imageio.v3 as iio
+def write_video(env_id, reset_frames, actions, path):
+    """Replay a game in a new emulator, writing every frame in colour (210x160) at 60 Hz to an mp4. Without sticky actions
+    the same reset (ale-py's: FIRE if the game has it, then no-ops, reset_frames in all) and actions play the same game."""
+    import ale_py
+    import imageio.v2 as imageio
+    ale = ale_py.ALEInterface()
+    ale.setFloat("repeat_action_probability", 0.0)
+    ale.loadROM(ale_py.roms.get_rom_path(game_name(env_id)))
+    ale.reset_game()  # as ale-py's reset does: some games (BeamRider) play differently without it
+    action_set, fire = ale.getMinimalActionSet(), [ale_py.Action.FIRE] * (ale_py.Action.FIRE in ale.getMinimalActionSet())
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    iio.imwrite(path, np.stack(frames).repeat(scale, axis=1).repeat(scale, axis=2)[..., None].repeat(3, axis=-1), fps=15)
+    with imageio.get_writer(path, fps=60, macro_block_size=1) as video:
+        for action in fire + [ale_py.Action.NOOP] * (reset_frames - len(fire)) + [action_set[a] for a in actions for _ in range(4)]:
+            ale.act(action)
+            video.append_data(ale.getScreenRGB())
 
 
 # AGENT
@@ -165,8 +172,7 @@ def layer_init(layer, std=math.sqrt(2), bias_const=0.0):
 class Agent(nn.Module):
     def __init__(self, num_actions):
         super().__init__()
-        # Atari detail 8: the Nature-DQN CNN (Mnih et al. 2015), shared by policy and value (§6.4, core detail 13).
-        # Output gains (core detail 2): 0.01 for the policy, which so starts near uniform, and 1 for the value.
+        # Atari detail 8: the Nature-DQN CNN, shared by policy and value (§6.4); output gains 0.01 and 1 (core detail 2).
         self.network = nn.Sequential(
             layer_init(nn.Conv2d(4, 32, 8, stride=4)), nn.ReLU(),
             layer_init(nn.Conv2d(32, 64, 4, stride=2)), nn.ReLU(),
@@ -221,7 +227,7 @@ def train(args):
         if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch
             mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
         pg_loss = clipped_surrogate_loss(ratio, mb_advantages, clip_coef)
-        v_loss = value_loss(newvalue, mb_values, mb_returns, clip_coef, args.clip_vloss)
+        v_loss = value_loss(newvalue, mb_values, mb_returns, args.clip_coef, args.clip_vloss)
         entropy = entropy.mean()
         loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # core detail 10, signs flipped to minimize
         optimizer.zero_grad()
@@ -231,7 +237,7 @@ def train(args):
         optimizer.step()
         # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[old, new] (joschu.net/blog/kl-approx.html).
         clipfrac = ((ratio - 1.0).abs() > clip_coef).float().mean()
-        return torch.stack([pg_loss, v_loss, entropy, (-logratio).mean(), ((ratio - 1) - logratio).mean(), clipfrac]).detach()
+        return torch.stack([pg_loss, v_loss, entropy, (-logratio).mean(), ((ratio - 1) - logratio).mean(), clipfrac, loss]).detach()
 
     policy = agent.get_action_and_value
     if args.compile:
@@ -242,10 +248,12 @@ def train(args):
     obs, actions = torch.zeros((T, N, 4, 84, 84), dtype=torch.uint8, device=device), torch.zeros((T, N), dtype=torch.long, device=device)
     logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, N), device=device)
 
-    # A resumed run starts new games (an emulator's state is not saved), seeded by the step.
-    next_obs, infos = envs.reset(seed=args.seed + global_step)
-    next_obs, lives = torch.as_tensor(next_obs, device=device), infos["lives"]
-    episode_return, episode_length, video_frames, games_of_env0 = np.zeros(N), np.zeros(N, dtype=np.int64), [], 0
+    # Env i of run --seed s is seeded s * N + i: two seeds share no env. A resumed run starts new games.
+    next_obs, infos = envs.reset(seed=args.seed * N + np.arange(N))
+    next_obs, frame_numbers, lost_life = torch.as_tensor(next_obs, device=device), infos["episode_frame_number"], np.zeros(N, dtype=bool)
+    # Env 0's game so far, its reset's frames and its actions, which --capture-video replays in colour when the game ends.
+    episode_return, episode_length, games_of_env0, video_reset_frames, video_actions = np.zeros(N), np.zeros(N, dtype=np.int64), 0, frame_numbers[0], []
+    fire = next((i for i, a in enumerate(envs.ale.get_action_set()) if a.name == "FIRE" and args.fire_on_life_loss), None)  # --fire-on-life-loss
     # On --resume, purge_step drops what the run logged after its checkpoint: its curves go on without a fold.
     writer = SummaryWriter(run_dir, purge_step=global_step + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items()))
@@ -256,8 +264,7 @@ def train(args):
 
     # ALGORITHM 1: for iteration = 1, 2, ...
     for iteration in range(start_iteration, num_iterations + 1):
-        # Paper §6.4, Table 5: alpha goes linearly from 1 to 0 and scales the learning rate (core detail 4) and the
-        # clip range, which CleanRL keeps fixed (--no-anneal-clip). The clip range is a tensor, like the lr.
+        # Paper §6.4, Table 5: alpha falls linearly from 1 to 0, scaling the lr (core detail 4) and L^CLIP's clip range, not V's.
         alpha = 1.0 - (iteration - 1.0) / num_iterations
         optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate if args.anneal_lr else args.learning_rate)
         clip_coef = torch.tensor(alpha * args.clip_coef if args.anneal_clip else args.clip_coef, device=device)
@@ -268,15 +275,18 @@ def train(args):
                 global_step += N
                 obs[step] = next_obs
                 action, logprobs[step], _, values[step] = policy(next_obs)
+                if fire is not None and lost_life.any():  # the env, not the policy, presses FIRE; the batch keeps its log-prob
+                    action = torch.where(torch.as_tensor(lost_life, device=device), fire, action)
+                    _, logprobs[step], _, values[step] = policy(next_obs, action)
                 actions[step] = action
                 next_obs, reward, term, trunc, infos = envs.step(action.cpu().numpy())
                 next_obs = torch.as_tensor(next_obs, device=device)
                 # Atari detail 6: learn from the sign of the reward; log the raw score of the whole game, over all lives.
                 terminations[step], truncations[step], rewards[step] = torch.as_tensor(term), torch.as_tensor(trunc), torch.as_tensor(np.sign(reward))
                 episode_return, episode_length = episode_return + reward, episode_length + 1
-                finished, lives = game_over(term, trunc, lives, infos["lives"]), infos["lives"]
-                if args.capture_video and games_of_env0 == round(games_of_env0 ** (1 / 3)) ** 3:  # games 0, 1, 8, 27, ...
-                    video_frames.append(obs[step, 0, -1].cpu().numpy().copy())  # a copy: the buffer is reused
+                finished, frame_numbers = game_over(term, trunc, frame_numbers, infos["episode_frame_number"]), infos["episode_frame_number"]
+                lost_life = term & ~finished  # atari detail 3: a termination within a game is a lost life
+                video_actions.append(int(action[0]))
                 for i in np.flatnonzero(trunc):  # bootstrap from the true final observation of an episode cut by the time limit
                     final_values[step, i] = agent.get_value(torch.as_tensor(infos["final_obs"][i][None], device=device))[0]
                 for i in np.flatnonzero(finished):
@@ -284,10 +294,10 @@ def train(args):
                     writer.add_scalar("charts/episodic_return", episode_return[i], global_step)
                     writer.add_scalar("charts/episodic_length", episode_length[i], global_step)
                     episode_return[i], episode_length[i] = 0.0, 0
-                    if i == 0:  # the first env's game is over: write its video, if it was recorded
-                        if video_frames:
-                            write_video(video_frames, f"{run_dir}/videos/step-{global_step}-game-{games_of_env0}.mp4")
-                        games_of_env0, video_frames = games_of_env0 + 1, []
+                    if i == 0:  # the first env's game is over: film games 0, 1, 8, 27, ... (replayed: see write_video)
+                        if args.capture_video and games_of_env0 == round(games_of_env0 ** (1 / 3)) ** 3:
+                            write_video(args.env_id, video_reset_frames, video_actions, f"{run_dir}/videos/step-{global_step}-game-{games_of_env0}.mp4")
+                        games_of_env0, video_actions, video_reset_frames = games_of_env0 + 1, [], frame_numbers[0]
 
             # ADVANTAGES: next_values[t] = V(s_{t+1}), or V(final observation) where an episode was truncated.
             next_values = torch.cat([values[1:], agent.get_value(next_obs)[None]])
@@ -305,7 +315,7 @@ def train(args):
                                     b_returns[mb_inds], b_values[mb_inds], clip_coef))  # fmt: skip
 
         # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
-        losses = dict(zip(("policy_loss", "value_loss", "entropy", "old_approx_kl", "approx_kl", "clipfrac"), torch.stack(stats).mean(0).tolist()))
+        losses = dict(zip(("policy_loss", "value_loss", "entropy", "old_approx_kl", "approx_kl", "clipfrac", "loss"), torch.stack(stats).mean(0).tolist()))
         losses["explained_variance"] = (1 - (b_returns - b_values).var() / b_returns.var()).item()
         sps = int((global_step - start_step) / (time.time() - start_time))
         writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"].item(), global_step)
@@ -328,8 +338,6 @@ def train(args):
 
     for sig, handler in previous_handlers.items():
         signal.signal(sig, handler)
-    if video_frames:  # the game being recorded has not ended: keep what there is
-        write_video(video_frames, f"{run_dir}/videos/step-{global_step}-game-{games_of_env0}-unfinished.mp4")
     envs.close()
     writer.close()
     if diverged:
@@ -344,8 +352,7 @@ def train(args):
 
 # EVALUATION
 def evaluate(args):
-    """Play --eval-episodes whole games with the policy of --eval-checkpoint and report their raw scores. The
-    policy is sampled, not its argmax: an argmax policy can wait for ever (in Breakout, by never pressing FIRE)."""
+    """Play --eval-episodes whole games with the sampled policy of --eval-checkpoint (its argmax can stall) and report the scores."""
     checkpoint = load_checkpoint(args.eval_checkpoint)
     train_args, device = resumed_args(checkpoint, args), torch.device(("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device)
     envs = make_envs(train_args, num_envs=1, training=False)  # whole games: no life-loss terminations
@@ -354,17 +361,16 @@ def evaluate(args):
     torch.manual_seed(args.seed)
     returns = []
     for game in range(args.eval_episodes):
-        (next_obs, _), done, game_return, frames = envs.reset(seed=args.seed + game), False, 0.0, []
+        (next_obs, infos), done, game_return, actions = envs.reset(seed=args.seed + game), False, 0.0, []
         while not done:
-            if args.capture_video:
-                frames.append(next_obs[0, -1].copy())
             with torch.no_grad():
                 action, _, _, _ = agent.get_action_and_value(torch.as_tensor(next_obs, device=device))
+            actions.append(int(action[0]))
             next_obs, reward, term, trunc, _ = envs.step(action.cpu().numpy())
             game_return, done = game_return + float(reward[0]), bool(term[0] or trunc[0])
         returns.append(game_return)
         if args.capture_video:
-            write_video(frames, f"{train_args.run_dir}/videos-eval/eval-game-{game}.mp4")
+            write_video(train_args.env_id, infos["episode_frame_number"][0], actions, f"{train_args.run_dir}/videos-eval/eval-game-{game}.mp4")
     envs.close()
     print(f"eval {train_args.env_id} step {checkpoint['global_step']:,}: return {np.mean(returns):.1f} ± {np.std(returns):.1f} over {len(returns)} episodes")
     return returns
@@ -407,7 +413,7 @@ def check_args(args):
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"{flag(name)} must be a finite number, got {value}")
     for name in ("total_timesteps", "num_envs", "num_steps", "minibatch_size", "update_epochs", "save_every", "eval_episodes",
-                 "torch_threads", "learning_rate", "clip_coef", "max_grad_norm"):  # fmt: skip
+                 "torch_threads", "learning_rate", "clip_coef", "max_grad_norm", "max_episode_frames"):  # fmt: skip
         if getattr(args, name) <= 0:
             raise ValueError(f"{flag(name)} must be positive, got {getattr(args, name)}")
     for name, low, high in (("gamma", 0, 1), ("gae_lambda", 0, 1), ("vf_coef", 0, math.inf), ("ent_coef", 0, math.inf)):
@@ -425,14 +431,8 @@ def check_args(args):
         raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {args.run_dir}/checkpoint.pt, or pick a new directory")
     if args.resume is not None or args.eval_checkpoint is not None:
         args = resumed_args(load_checkpoint(args.resume or args.eval_checkpoint), args)
-    import gymnasium as gym
-    from ale_py import roms
-    if game_name(args.env_id) not in roms.get_all_rom_ids():
-        try:  # a gymnasium env, but not an Atari game: say what it is
-            action_space = gym.make(args.env_id).action_space
-        except gym.error.Error:
-            raise ValueError(f"unknown env id {args.env_id!r}: ale-py has no Atari game {game_name(args.env_id)!r}") from None
-        raise ValueError(f"{args.env_id} is not an Atari game, its action space is {action_space}; use ppo_continuous.py for continuous control")
+    if game_name(args.env_id) is None:
+        raise ValueError(f"unknown env id {args.env_id!r}: ale-py has no such game (for continuous action spaces, use ppo_continuous.py)")
 
 
 def main():

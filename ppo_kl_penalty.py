@@ -56,7 +56,7 @@ class Args:
     adaptive_beta: bool = True  # adapt beta after each update (paper §4); --no-adaptive-beta keeps it fixed (Table 1's fixed-KL rows)
     clip_vloss: bool = True  # clip the value loss around the old values (core detail 9)
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
-    vf_coef: float = 0.5  # value loss coefficient c1 (core detail 10)
+    vf_coef: float = 0.25  # c1 of eq. 9, on (V - V_targ)^2: CleanRL's 0.5 on half of it (with separate networks, it acts via the grad clip)
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
     norm_obs: bool = True  # normalize observations with running statistics (continuous details 6-7)
@@ -125,15 +125,15 @@ def adapt_beta(beta, kl, kl_target):
 
 
 def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
-    """Half the squared error of V against the returns, optionally clipped (core detail 9).
+    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9).
 
     The clipped form is baselines' ppo2, not the paper's: the larger of the errors of the new value and
     of the old value moved at most clip_coef towards it. Engstrom et al. (2020) found no gain in it."""
     v_loss_unclipped = (newvalue - returns) ** 2
     if not clip_vloss:
-        return 0.5 * v_loss_unclipped.mean()
+        return v_loss_unclipped.mean()
     v_clipped = oldvalue + torch.clamp(newvalue - oldvalue, -clip_coef, clip_coef)
-    return 0.5 * torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
+    return torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
 
 
 class RunningMeanStd(nn.Module):
@@ -253,7 +253,7 @@ def train(args):
             mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
         kl = gaussian_kl(mb_old_means, old_logstd, agent.actor_mean(mb_obs), agent.actor_logstd)
         pg_loss = kl_penalty_loss(ratio, mb_advantages, kl, beta)
-        v_loss = value_loss(newvalue, mb_values, mb_returns, clip_coef, args.clip_vloss)
+        v_loss = value_loss(newvalue, mb_values, mb_returns, args.clip_coef, args.clip_vloss)
         entropy = entropy.mean()
         loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # core detail 10, signs flipped to minimize
         optimizer.zero_grad()
@@ -264,7 +264,7 @@ def train(args):
         # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[old, new] (joschu.net/blog/kl-approx.html);
         # nothing is clipped here: clipfrac is the fraction of ratios that PPO-Clip would clip.
         clipfrac = ((ratio - 1.0).abs() > clip_coef).float().mean()
-        return torch.stack([pg_loss, v_loss, entropy, (-logratio).mean(), ((ratio - 1) - logratio).mean(), clipfrac]).detach()
+        return torch.stack([pg_loss, v_loss, entropy, (-logratio).mean(), ((ratio - 1) - logratio).mean(), clipfrac, loss]).detach()
 
     policy = agent.get_action_and_value
     if args.compile:
@@ -347,7 +347,7 @@ def train(args):
         beta = adapt_beta(beta, kl_batch, args.kl_target) if args.adaptive_beta else beta
 
         # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
-        losses = dict(zip(("policy_loss", "value_loss", "entropy", "old_approx_kl", "approx_kl", "clipfrac"), torch.stack(stats).mean(0).tolist()))
+        losses = dict(zip(("policy_loss", "value_loss", "entropy", "old_approx_kl", "approx_kl", "clipfrac", "loss"), torch.stack(stats).mean(0).tolist()))
         losses["explained_variance"] = (1 - (b_returns - b_values).var() / b_returns.var()).item()
         sps = int((global_step - start_step) / (time.time() - start_time))
         writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"].item(), global_step)

@@ -8,8 +8,8 @@ from conftest import TINY, load_script, run_cli, tb_scalars
 atari = load_script("ppo_atari.py")
 
 
-def envs(num_envs=2, training=True, env_id="BreakoutNoFrameskip-v4"):
-    return atari.make_envs(atari.Args(env_id=env_id, num_envs=num_envs), training=training)
+def envs(num_envs=2, training=True, env_id="BreakoutNoFrameskip-v4", **args):
+    return atari.make_envs(atari.Args(env_id=env_id, num_envs=num_envs, **args), training=training)
 
 
 @pytest.mark.parametrize(
@@ -66,7 +66,7 @@ def test_life_loss_terminates_for_learning_but_the_game_and_its_score_go_on():
     rng = np.random.default_rng(1)
     e.reset(seed=3)
     _, info = full.reset(seed=3)
-    lives = info["lives"]
+    frames = info["episode_frame_number"]
     terminations, score, full_score = 0, 0.0, 0.0
     for _ in range(5000):
         action = rng.integers(0, 4, size=1)
@@ -74,9 +74,10 @@ def test_life_loss_terminates_for_learning_but_the_game_and_its_score_go_on():
         _, full_reward, full_term, _, _ = full.step(action)
         score, full_score = score + reward[0], full_score + full_reward[0]
         terminations += int(term[0])
-        if atari.game_over(term, trunc, lives, info["lives"])[0]:
+        if atari.game_over(term, trunc, frames, info["episode_frame_number"])[0]:
             break
-        lives = info["lives"]
+        assert not term[0] or info["episode_frame_number"][0] == frames[0] + 4, "a lost life does not restart the game"
+        frames = info["episode_frame_number"]
         assert not full_term[0], "the evaluation env ended the game early"
     e.close()
     full.close()
@@ -85,13 +86,126 @@ def test_life_loss_terminates_for_learning_but_the_game_and_its_score_go_on():
 
 
 @pytest.mark.parametrize(
-    "term,trunc,lives,new_lives,expected",
-    [(True, False, 5, 4, False), (True, False, 1, 5, True), (True, False, 0, 0, True),
-     (False, True, 3, 3, True), (False, False, 3, 3, False), (True, True, 3, 2, True)],
+    "term,trunc,frames,new_frames,expected",
+    [(True, False, 400, 404, False),  # a lost life: the game's frame count goes on
+     (True, False, 400, 7, True),  # the game ended: the count restarts with the next game's reset
+     (True, False, 400, 0, True),  # ... a reset of no no-ops and no FIRE
+     (False, True, 108_000, 12, True),  # cut by the frame cap
+     (False, False, 400, 404, False), (True, True, 400, 3, True)],
 )  # fmt: skip
-def test_game_over_table(term, trunc, lives, new_lives, expected):
-    got = atari.game_over(np.array([term]), np.array([trunc]), np.array([lives]), np.array([new_lives]))
+def test_game_over_table(term, trunc, frames, new_frames, expected):
+    got = atari.game_over(np.array([term]), np.array([trunc]), np.array([frames]), np.array([new_frames]))
     assert got.tolist() == [expected]
+
+
+def test_games_are_cut_at_max_episode_frames():
+    assert atari.Args().max_episode_frames == 30 * 60 * 60, "the default is 30 minutes of play at 60 frames a second"
+    e = envs(num_envs=1, env_id="PongNoFrameskip-v4", max_episode_frames=400)  # a Pong game lasts thousands of frames
+    _, info = e.reset(seed=0)
+    frames = info["episode_frame_number"]
+    for step in range(1, 200):
+        _, _, term, trunc, info = e.step(np.zeros(1, dtype=np.int64))
+        if term[0] or trunc[0]:
+            break
+        frames = info["episode_frame_number"]
+    e.close()
+    assert trunc[0] and not term[0], "a time limit is a truncation: its value is bootstrapped, not zeroed"
+    assert 4 * step == 400 and "final_obs" in info, "400 frames of play, 4 to an agent step, after the reset's"
+    assert atari.game_over(term, trunc, frames, info["episode_frame_number"])[0]
+
+
+def play_one_game(env_id, seed, training=False):
+    """A whole game of random actions in ppo_atari.py's env: its reset's frame count, and each step's action, reward and lives."""
+    e = envs(num_envs=1, training=training, env_id=env_id)
+    rng = np.random.default_rng(seed)
+    _, info = e.reset(seed=seed)
+    reset_frames, actions, rewards, lives = int(info["episode_frame_number"][0]), [], [], []
+    while True:
+        actions.append(int(rng.integers(e.single_action_space.n)))
+        _, reward, term, trunc, info = e.step(np.array(actions[-1:]))
+        rewards.append(float(reward[0]))
+        lives.append(int(info["lives"][0]))
+        if term[0] or trunc[0]:
+            break
+    e.close()
+    return reset_frames, actions, rewards, lives[:-1]  # the last step returns the next game's lives
+
+
+@pytest.mark.parametrize("env_id", ["BreakoutNoFrameskip-v4", "BeamRiderNoFrameskip-v4"])
+def test_video_replays_the_same_game_in_colour_at_60_hz(env_id, tmp_path, monkeypatch):
+    import ale_py
+    import imageio.v3 as iio
+
+    reset_frames, actions, rewards, lives = play_one_game(env_id, seed=4)
+    replayed, replayed_lives, emulators = [], [], []
+
+    class Recording(ale_py.ALEInterface):  # write_video's emulator, with every frame's reward noted
+        def __init__(self):
+            super().__init__()
+            emulators.append(self)
+
+        def act(self, action, *args):
+            replayed.append(super().act(action, *args))
+            replayed_lives.append(self.lives())
+            return replayed[-1]
+
+    monkeypatch.setattr(ale_py, "ALEInterface", Recording)
+    path = tmp_path / "videos" / "game.mp4"
+    atari.write_video(env_id, reset_frames, actions, str(path))
+    # The same game: each agent step's reward (over its 4 frames) and lives where the env had them, and the game over.
+    assert len(replayed) == reset_frames + 4 * len(actions)
+    assert np.reshape(replayed[reset_frames:], (-1, 4)).sum(1).tolist() == rewards
+    assert replayed_lives[reset_frames + 3 :: 4][:-1] == lives and lives[0] > lives[-1]
+    assert emulators[0].game_over()
+    # Every frame, in colour, at the game's size and rate: what a person watching the game sees.
+    video = iio.imread(path)
+    assert video.shape == (reset_frames + 4 * len(actions), 210, 160, 3)
+    assert iio.immeta(path)["fps"] == 60
+    assert np.abs(video[..., 0].astype(int) - video[..., 2]).mean() > 2, "the frames are gray"
+
+
+def test_seeds_of_different_runs_share_no_env(tmp_path, monkeypatch):
+    import ale_py
+
+    class Started(Exception):
+        pass
+
+    seeds = {}
+
+    def reset(self, *, seed=None, options=None):  # note the envs' seeds, then stop the run
+        seeds[run] = set((np.asarray(seed) + (np.arange(self.num_envs) if np.ndim(seed) == 0 else 0)).tolist())
+        raise Started
+
+    monkeypatch.setattr(ale_py.AtariVectorEnv, "reset", reset)
+    for run in range(1, 11):
+        with pytest.raises(Started):
+            atari.train(atari.Args(seed=run, num_envs=8, run_dir=str(tmp_path / str(run))))
+    assert all(len(s) == 8 for s in seeds.values()), "the envs of one run have different seeds"
+    for a in seeds:
+        for b in seeds:
+            assert a == b or not seeds[a] & seeds[b], f"runs with --seed {a} and {b} share env seeds {seeds[a] & seeds[b]}"
+
+
+@pytest.mark.parametrize("fire_on_life_loss", [True, False])
+def test_fire_on_life_loss(fire_on_life_loss, tmp_path, monkeypatch):
+    # Breakout: after a lost life the ball waits for FIRE. With the flag, the env presses it as the next action.
+    import ale_py
+
+    steps, real_step = [], ale_py.AtariVectorEnv.step
+
+    def step(self, actions):
+        result = real_step(self, actions)
+        steps.append((actions.copy(), result[2].copy(), result[4]["episode_frame_number"].copy()))
+        return result
+
+    monkeypatch.setattr(ale_py.AtariVectorEnv, "step", step)
+    atari.train(atari.Args(num_envs=4, num_steps=128, minibatch_size=128, update_epochs=1, total_timesteps=512,
+                           fire_on_life_loss=fire_on_life_loss, run_dir=str(tmp_path / "run")))  # fmt: skip
+    fire = [a.name for a in atari.make_envs(atari.Args(num_envs=1)).ale.get_action_set()].index("FIRE")
+    after_lost_life = [next_actions[i] for (_, term, frames), (next_actions, _, new_frames) in zip(steps, steps[1:])
+                       for i in np.flatnonzero(term & (new_frames > frames))]  # fmt: skip
+    assert len(after_lost_life) > 5
+    assert all(a == fire for a in after_lost_life) == fire_on_life_loss, after_lost_life
 
 
 def test_cnn_shapes_and_scaling():
@@ -137,17 +251,18 @@ def test_clip_range_and_learning_rate_anneal_together(tmp_path):
     assert [v for _, v in scalars["charts/learning_rate"]] == pytest.approx([2.5e-4 * a for a in alpha])
 
 
-def test_training_video_frames_are_not_overwritten_by_later_rollouts(tmp_path):
-    # The rollout buffer is reused every iteration; a recorded frame must be a copy, or a game longer
-    # than one rollout shows the last rollout's frames again and again.
+def test_training_and_evaluation_videos_are_whole_games_in_colour(tmp_path):
+    # Games 0 and 1 of the first env, each longer than one rollout, and the evaluation game.
     import imageio.v3 as iio
 
     run_dir = tmp_path / "run"
     run_cli("ppo_atari.py", "--env-id", TINY["ppo_atari.py"]["env_id"], "--num-envs", "2", "--num-steps", "32",
-            "--minibatch-size", "64", "--update-epochs", "1", "--total-timesteps", "640", "--capture-video",
+            "--minibatch-size", "64", "--update-epochs", "1", "--total-timesteps", "1280", "--capture-video",
             "--run-dir", run_dir, cwd=tmp_path)  # fmt: skip
-    video = max((run_dir / "videos").rglob("*.mp4"), key=lambda p: p.stat().st_size)
-    frames = np.stack(list(iio.imiter(video))).astype(float)
-    assert len(frames) > 64
-    period_diffs = [np.abs(frames[k] - frames[k + 32]).mean() for k in range(len(frames) - 32)]
-    assert max(period_diffs) > 1.0, "frames repeat with the rollout's period"
+    run_cli("ppo_atari.py", "--eval-checkpoint", run_dir / "checkpoint.pt", "--eval-episodes", "1", "--capture-video", cwd=tmp_path)
+    names = sorted(p.name.split("-game-")[1] for p in (run_dir / "videos").glob("*.mp4"))
+    assert names[:2] == ["0.mp4", "1.mp4"], names
+    for path in [*(run_dir / "videos").glob("*.mp4"), run_dir / "videos-eval" / "eval-game-0.mp4"]:
+        video = iio.imread(path)
+        assert video.shape[1:] == (210, 160, 3) and len(video) > 4 * 60 and iio.immeta(path)["fps"] == 60, path
+        assert np.abs(video[..., 0].astype(int) - video[..., 2]).mean() > 2, f"{path} is gray"

@@ -14,7 +14,7 @@ from conftest import ROOT, SCRIPTS, TINY, load_script, run_cli, tb_scalars
 EXPECTED_SCALARS = {
     "charts/episodic_return", "charts/episodic_length", "charts/learning_rate", "charts/SPS",
     "losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl",
-    "losses/old_approx_kl", "losses/clipfrac", "losses/explained_variance",
+    "losses/old_approx_kl", "losses/clipfrac", "losses/explained_variance", "losses/loss",
 }  # fmt: skip
 
 
@@ -58,6 +58,11 @@ def test_smoke_run_logs_and_checkpoints(script, tmp_path):
     assert [step for step, _ in scalars["charts/SPS"]] == list(range(batch, total + 1, batch))
     for tag in ["losses/policy_loss", "losses/value_loss", "losses/approx_kl"]:
         assert all(np.isfinite(v) for _, v in scalars[tag])
+    # The minimized loss is minus eq. 9, -(L^CLIP - c1 L^VF + c2 S), with the script's c1 and c2 at full weight (that L^VF
+    # is the unhalved squared error is test_losses' job).
+    args = load_script(script).Args()
+    for (_, total), (_, pg), (_, v), (_, ent) in zip(*(scalars[f"losses/{k}"] for k in ("loss", "policy_loss", "value_loss", "entropy"))):
+        assert total == pytest.approx(pg - args.ent_coef * ent + args.vf_coef * v, rel=1e-4, abs=1e-6)
     # Nothing is left half-written.
     assert not list(run_dir.glob("*.tmp"))
 

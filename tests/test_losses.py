@@ -76,9 +76,10 @@ def test_clip_loss_hand_worked(clip_loss):
     assert loss.item() == pytest.approx(-0.8)
 
 
-def test_value_loss_unclipped_is_half_mse(v_loss):
+def test_value_loss_unclipped_is_the_papers_squared_error(v_loss):
+    # L^VF of eq. 9 is (V - V_targ)^2, not half of it (CleanRL's convention): errors 1 and 2 give (1 + 4) / 2.
     new, old, ret = torch.tensor([1.0, 3.0]), torch.tensor([0.0, 0.0]), torch.tensor([0.0, 1.0])
-    assert v_loss(new, old, ret, 0.2, False).item() == pytest.approx(0.5 * (1.0 + 4.0) / 2)
+    assert v_loss(new, old, ret, 0.2, False).item() == pytest.approx((1.0 + 4.0) / 2)
 
 
 @settings(max_examples=200, deadline=None)
@@ -93,4 +94,4 @@ def test_value_loss_clipped_is_pessimistic(new, old, ret, eps):
             assert clipped == pytest.approx(unclipped), name
         else:  # the clipped prediction is old +- eps
             v_clipped = old + np.clip(new - old, -eps, eps)
-            assert clipped == pytest.approx(0.5 * max((new - ret) ** 2, (v_clipped - ret) ** 2)), name
+            assert clipped == pytest.approx(max((new - ret) ** 2, (v_clipped - ret) ** 2)), name
