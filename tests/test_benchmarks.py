@@ -62,8 +62,16 @@ def test_every_suite_is_a_valid_grid(suite):
     """Each variant's flags parse with its script's own parser, and each env passes its checks."""
     jobs = run.make_grid(suite)
     spec = run.SUITES[suite]
-    assert len(jobs) == len(spec.variants) * len(spec.envs) * len(spec.seeds)
+    sizes = [len(spec.only[v][0]) * len(spec.only[v][1]) if v in spec.only else len(spec.envs) * len(spec.seeds) for v in spec.variants]
+    assert len(jobs) == sum(sizes)
     run.check_grid(jobs)
+
+
+def test_atari_suite_is_three_games_three_seeds_and_the_sb3_peer():
+    runs = {(job.variant, job.env_id.split("NoFrameskip")[0], job.seed) for job in run.make_grid("atari")}
+    assert {(e, s) for v, e, s in runs if v == "ppo"} == {(e, s) for e in ("Pong", "Breakout", "BeamRider") for s in (1, 2, 3)}
+    assert {(e, s) for v, e, s in runs if v == "sb3"} == {("Pong", 1), ("Breakout", 1)}
+    assert {job.total_timesteps for job in run.make_grid("atari")} == {1_000_000}
 
 
 def test_table1_rows_are_the_papers():
