@@ -43,7 +43,8 @@ def machine():
 
 
 def read_run(run_dir):
-    """A finished run directory's checkpoint, its episodes (step, return, length), and beta's range if it has one."""
+    """A finished run directory's checkpoint, its episodes (step, return, length), and, for a run of
+    ppo_kl_penalty.py, beta's range and its series: (step, beta, the update's mean KL) per iteration."""
     import torch
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -53,13 +54,14 @@ def read_run(run_dir):
     lengths = acc.Scalars("charts/episodic_length")
     checkpoint = torch.load(Path(run_dir) / "checkpoint.pt", map_location="cpu", weights_only=True)
     rows = [(r.step, r.value, int(l.value)) for r, l in zip(returns, lengths)]
-    beta = None
+    beta, series = None, None
     if "losses/beta" in acc.Tags()["scalars"]:
+        series = [(b.step, b.value, k.value) for b, k in zip(acc.Scalars("losses/beta"), acc.Scalars("losses/kl"))]
         # ppo_kl_penalty.py: the range of beta over the whole run and over its first 90% of updates
         betas = [e.value for e in acc.Scalars("losses/beta")]
         early = betas[: int(0.9 * len(betas))] or betas
         beta = f"{min(betas):.3g}..{max(betas):.3g} (first 90% of updates: {min(early):.3g}..{max(early):.3g})"
-    return checkpoint, rows, beta
+    return checkpoint, rows, beta, series
 
 
 def write_csv(path, header, rows):

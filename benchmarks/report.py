@@ -306,6 +306,7 @@ def report(folder, reference=None, results=RESULTS):
     for env in sorted({r.env_id for r in runs}):
         png = plot_env(folder, env, [r for r in runs if r.env_id == env], variants)
         lines.append(f"![{env}](curves/{png.name})")
+    lines += beta_section(folder)
     lines += ["", "## Every run", "", *run_table(runs)]
     text = "\n".join(lines) + "\n"
     (folder / "report.md").write_text(text)
@@ -404,6 +405,61 @@ def plot_env(folder, env, runs, variants):
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
+
+
+def read_beta(folder):
+    """{(env_id, variant, seed): [(step, beta, kl), ...]} from <folder>/beta/, which run.py writes for KL runs."""
+    out = {}
+    for path in sorted((Path(folder) / "beta").glob("*__*__seed*.csv")):
+        env_id, variant, seed = path.stem.split("__")
+        with open(path) as f:
+            out[env_id, variant, int(seed.removeprefix("seed"))] = [(int(r["global_step"]), float(r["beta"]), float(r["kl"])) for r in csv.DictReader(f)]
+    return out
+
+
+def beta_section(folder):
+    """For the adaptive-KL rows: beta over training, per env, and how it ends (the last 10% of updates)."""
+    series = {key: rows for key, rows in read_beta(folder).items() if key[1].startswith("kl")}
+    if not series:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lines = ["", "## Beta over training (adaptive KL)", "",
+             "From the beta each update used (`losses/beta`). The rule halves beta after each update whose KL is below",
+             "d_targ / 1.5. As the learning rate anneals linearly to 0, the last updates are too small to reach that,",
+             "and beta halves again and again: the last column counts the halvings in a row that end each run.", "",
+             "| env | setting | seeds | median beta, first 90% of updates | beta at the end | updates in the last 10% with KL < d_targ / 1.5 | final run of updates with KL < d_targ / 1.5 |",
+             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for env in sorted({key[0] for key in series}):
+        fig, ax = plt.subplots(figsize=(6, 3.4))
+        for (e, variant, seed), rows in sorted(series.items()):
+            if e == env:
+                ax.plot([r[0] for r in rows], [r[1] for r in rows], lw=1, label=f"{variant} seed {seed}")
+        ax.set_yscale("log")
+        ax.set_title(f"{env}: beta of the adaptive KL penalty")
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("beta")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        out = Path(folder) / "curves" / f"beta-{env}.png"
+        out.parent.mkdir(exist_ok=True)
+        fig.savefig(out, dpi=90)
+        plt.close(fig)
+        for variant in sorted({key[1] for key in series if key[0] == env}):
+            runs = [rows for (e, v, _), rows in series.items() if e == env and v == variant]
+            target = float(variant.removeprefix("kl"))
+            cut = [int(0.9 * len(rows)) for rows in runs]
+            early = statistics.mean(statistics.median(r[1] for r in rows[:c]) for rows, c in zip(runs, cut))
+            end = statistics.mean(rows[-1][1] for rows in runs)
+            low = statistics.mean(statistics.mean(r[2] < target / 1.5 for r in rows[c:]) for rows, c in zip(runs, cut))
+            streak = [next((i for i, r in enumerate(reversed(rows)) if r[2] >= target / 1.5), len(rows)) for rows in runs]
+            lines.append(f"| {env} | {variant} | {len(runs)} | {early:.3g} | {end:.3g} | {low:.0%} | {', '.join(map(str, streak))} |")
+    lines += [""] + [f"![beta, {env}](curves/beta-{env}.png)" for env in sorted({key[0] for key in series})]
+    return lines
 
 
 def main():

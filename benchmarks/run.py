@@ -66,6 +66,9 @@ SUITES = {
         "beta3": ("ppo_kl_penalty.py", ["--init-beta", "3", "--no-adaptive-beta"]),
         "beta10": ("ppo_kl_penalty.py", ["--init-beta", "10", "--no-adaptive-beta"]),
     }, MUJOCO, [1, 2, 3], 1_000_000, "the paper's Table 1 rows; everything else at the scripts' defaults"),  # fmt: skip
+    # Does the collapse of beta at the end of the adaptive-KL runs matter? The same row with the lr held constant.
+    "beta_collapse": Suite({"kl0.01": ("ppo_kl_penalty.py", []), "kl0.01-const-lr": ("ppo_kl_penalty.py", ["--no-anneal-lr"])},
+                           ["Hopper-v5"], [1, 2, 3], 1_000_000, "adaptive KL d_targ 0.01, with and without lr annealing"),
     # The paper trained Atari for 10M agent steps (40M frames); here 1M, a tenth. The peer at the same budget is
     # SB3's PPO with the RL Zoo's Atari hyperparameters, on two of the games with one seed.
     "atari": Suite({"ppo": ("ppo_atari.py", ["--compile"]), "sb3": ("benchmarks/sb3_atari.py", [])},
@@ -213,7 +216,7 @@ def read_attempts(job):
 
 def finish(job):
     """Turn a finished run directory into its CSV."""
-    checkpoint, rows, beta = read_run(job.run_dir)
+    checkpoint, rows, beta, series = read_run(job.run_dir)
     attempts = read_attempts(job)
     commits = sorted({a[1] for a in attempts}) or ["unknown"]  # every attempt may have added steps
     wall = sum(float(a[2]) for a in attempts)
@@ -224,7 +227,11 @@ def finish(job):
         ("versions", versions(("torch", "numpy", "gymnasium", "mujoco", "ale-py", *(["stable-baselines3"] if "sb3" in job.script else [])))),
         ("wall_time_s", f"{wall:.0f}"), ("attempts", len(attempts)), *([("beta_range", beta)] if beta else []),
     ]  # fmt: skip
-    write_csv(job.csv, header, rows)
+    if series:  # beta after each update, for the report's plot of it: <suite>/beta/<run>.csv
+        path = job.results_dir / "beta" / f"{job.name}.csv"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("global_step,beta,kl\n" + "".join(f"{step},{b:.6g},{kl:.6g}\n" for step, b, kl in series))
+    write_csv(job.csv, header, rows)  # last: the CSV's presence means that the run is finished
     return score(rows)
 
 

@@ -142,6 +142,9 @@ def test_runner_resumes_an_interrupted_run(tmp_path):
     meta, rows = read_csv(csv_path)
     assert int(meta["global_step"]) == total and int(meta["attempts"]) == 2
     assert meta["command"].startswith("python ppo_kl_penalty.py ") and "beta_range" in meta
+    beta = (csv_path.parent / "beta" / csv_path.name).read_text().splitlines()
+    assert beta[0] == "global_step,beta,kl" and len(beta) - 1 == total // 2048, "beta after each of the run's updates"
+    assert [int(line.split(",")[0]) for line in beta[1:]] == list(range(2048, total + 1, 2048))
     steps = [step for step, _, _ in rows]
     assert steps == sorted(steps), "one curve, without a fold at the resume"
     attempts = [line.split("\t") for line in (run_dir / "attempts.txt").read_text().splitlines()]
