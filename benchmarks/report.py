@@ -129,6 +129,35 @@ def normalized_scores(runs, random):
     return {v: (statistics.mean(s), len(s)) for v, s in per_variant.items() if s}, envs, best_of
 
 
+def normalized_by_env(runs, random, envs, best_of):
+    """{variant: {env: (mean normalized score of its runs there, number of runs)}}, on the scale of normalized_scores."""
+    by_env, out = group(runs), {}
+    for env in envs:
+        lo, hi = random[env], statistics.mean(r.score for r in by_env[env][best_of[env]])
+        for variant, variant_runs in by_env[env].items():
+            out.setdefault(variant, {})[env] = (statistics.mean((r.score - lo) / (hi - lo) for r in variant_runs), len(variant_runs))
+    return out
+
+
+def verdict(norm, rows):
+    """Whether the paper's order holds in our normalized scores (Table 1: clip 0.2 best, no clipping worst,
+    adaptive KL below clipping), in words computed from the scores; None until every row has been run."""
+    if any(row not in norm for row in rows):
+        return None
+    score = {row: norm[row][0] for row in rows}
+    best, worst = max(score, key=score.get), min(score, key=score.get)
+    kl = [row for row in rows if row.startswith("kl")]
+    best_kl = max(kl, key=score.get)
+    parts = [
+        "clip 0.2 is the best of the 11 rows" if best == "clip0.2" else f"clip 0.2 ({score['clip0.2']:.2f}) is not the best row: {best} is ({score[best]:.2f})",
+        "no clipping or penalty is the worst" if worst == "no-clip" else f"no clipping ({score['no-clip']:.2f}) is not the worst row: {worst} is ({score[worst]:.2f})",
+        f"every adaptive KL row is below clip 0.2 (the best, {best_kl}, scores {score[best_kl]:.2f} against {score['clip0.2']:.2f})"
+        if score[best_kl] < score["clip0.2"] else f"adaptive KL {best_kl} ({score[best_kl]:.2f}) is not below clip 0.2 ({score['clip0.2']:.2f})",
+    ]  # fmt: skip
+    holds = best == "clip0.2" and worst == "no-clip" and score[best_kl] < score["clip0.2"]
+    return f"**The paper's order {'holds' if holds else 'does not hold'} here:** " + "; ".join(parts) + "."
+
+
 def fmt(mean, std=None):
     digits = 2 if abs(mean) < 100 else 1 if abs(mean) < 1000 else 0
     text = f"{mean:,.{digits}f}"
@@ -229,9 +258,22 @@ def tables(folder, runs, reference, results, level="##"):
         for v in suite_variants("table1"):  # every row of the paper's table, run here or not
             paper = reference.get(("paper_table1", "", v))
             ours = norm.get(v)
-            lines.append(f"| {v} | {ours[0]:.2f} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | not run | 0 | {paper[0]:.2f} |")
-        lines += ["", "| env | best variant here |", "|---|---|"]
-        lines += [f"| {env} | {best_of[env]} |" for env in norm_envs]
+            n = sum(r.variant == v for r in runs)
+            missing = "not run" if not n else f"not on every env yet ({n} run{'s' if n > 1 else ''})"
+            lines.append(f"| {v} | {ours[0]:.2f} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | {missing} | 0 | {paper[0]:.2f} |")
+        text = verdict(norm, suite_variants("table1"))
+        ran = sum(v in norm for v in suite_variants("table1"))
+        lines += ["", text or f"The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping) waits for all 11 rows: {ran} are in."]
+        by_env = normalized_by_env(runs, random, norm_envs, best_of) if norm_envs else {}
+        lines += [] if not by_env else ["", "Per env (normalized score, runs), and the commits each setting's runs were made at:", "",
+                  "| setting | " + " | ".join(norm_envs) + " | commits |", "|---" * (len(norm_envs) + 2) + "|"]  # fmt: skip
+        for v in [v for v in suite_variants("table1") if v in by_env]:
+            commits = ", ".join(sorted({r.meta.get("commit", "?") for r in runs if r.variant == v}))
+            cells = [f"{by_env[v][env][0]:.2f} ({by_env[v][env][1]})" if env in by_env[v] else "–" for env in norm_envs]
+            lines.append(f"| {v} | " + " | ".join(cells) + f" | {commits} |")
+        if norm_envs:
+            lines += ["", "| env | best variant here |", "|---|---|"]
+            lines += [f"| {env} | {best_of[env]} |" for env in norm_envs]
         lines += ["", f"{level} Scores", ""]
     if kind == "atari":
         return lines + atari_table(runs, reference, variants, results)

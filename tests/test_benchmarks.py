@@ -211,6 +211,25 @@ def test_report_normalizes_as_the_paper_does(tmp_path):
         assert f"curves/{env}.png" in text
 
 
+@pytest.mark.parametrize("kl003_score, holds", [(80.0, True), (120.0, False)])
+def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    fake_random(results, "A-v0", [0.0])
+    scores = {v: 50.0 for v in run.SUITES["table1"].variants} | {"clip0.2": 100.0, "no-clip": 10.0, "kl0.03": kl003_score}
+    for variant, value in scores.items():
+        fake_run(folder, "A-v0", variant, 1, value)
+    text = report.report(folder, results=results)
+    assert f"**The paper's order {'holds' if holds else 'does not hold'} here:**" in text
+    if holds:
+        assert "clip 0.2 is the best of the 11 rows; no clipping or penalty is the worst; every adaptive KL row is below clip 0.2" in text
+    else:  # kl0.03 (1.20 on the scale where the best, itself, is 1) beats clip 0.2 (100 / 120)
+        assert "clip 0.2 (0.83) is not the best row: kl0.03 is (1.00)" in text and "adaptive KL kl0.03 (1.00) is not below clip 0.2 (0.83)" in text
+    assert "| clip0.2 | " + f"{100 / max(100.0, kl003_score):.2f} (1) | abc1234 |" in text, "the per-env breakdown, with its commits"
+    (folder / "A-v0__beta10__seed1.csv").unlink()
+    assert "waits for all 11 rows: 10 are in" in report.report(folder, results=results)
+
+
 def test_report_uses_only_envs_every_variant_ran(tmp_path):
     results = tmp_path / "results"
     folder = results / "table1"
