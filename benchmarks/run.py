@@ -267,7 +267,83 @@ def fmt_time(seconds):
     return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
 
 
-def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=None):
+def launch_local(job, cmd, log):
+    """Start a run as a subprocess of this runner."""
+    proc = subprocess.Popen([sys.executable, *cmd[1:]], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
+    (job.run_dir / "pid").write_text(str(proc.pid))
+    return proc
+
+
+def ray_run(cmd, root, log_path, run_dir):
+    """A Ray task: run one training command on whichever node Ray picked, in the same repository path,
+    logging to the run's folder, until it ends or the runner asks it to stop (a file, 'stop', in the
+    run's folder: a Ray task cannot be sent SIGTERM, and its process must save its checkpoint)."""
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    stop_file = Path(run_dir) / "stop"
+    with open(log_path, "a") as log:
+        proc = subprocess.Popen([sys.executable, *cmd[1:]], cwd=root, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
+        (Path(run_dir) / "pid").write_text(str(proc.pid))
+        while proc.poll() is None:
+            if stop_file.exists():
+                proc.terminate()  # the script saves its checkpoint and exits 130
+                proc.wait()
+            time.sleep(0.5)
+    stop_file.unlink(missing_ok=True)
+    return proc.returncode
+
+
+class RayRun:
+    """A run as a Ray task, with the part of Popen's interface that run_grid uses: poll() and terminate()."""
+
+    def __init__(self, job, cmd, log):
+        import ray
+
+        log.close()  # the task writes the log itself, on its node
+        self.job, self.returncode = job, None
+        (job.run_dir / "stop").unlink(missing_ok=True)
+        cuda = any(flag.startswith("cuda") for flag in job.flags)  # the run asks for a GPU with --device cuda
+        task = ray.remote(num_cpus=1, num_gpus=1 if cuda else 0, max_retries=0)(ray_run)
+        self.ref = task.remote(cmd, str(ROOT), str(job.run_dir / "log.txt"), str(job.run_dir))
+
+    def poll(self):
+        import ray
+
+        if self.returncode is None and ray.wait([self.ref], timeout=0)[0]:
+            try:
+                self.returncode = ray.get(self.ref)
+            except Exception as e:  # the task itself failed (its node died, say): a failed run, by name
+                print(f"{self.job.name}: its Ray task failed: {type(e).__name__}", flush=True)
+                self.returncode = 1
+        return self.returncode
+
+    def terminate(self):
+        (self.job.run_dir / "stop").write_text("")
+
+
+def start_ray(address, workers):
+    """Join the Ray cluster at `address`, or start a local Ray instance with `workers` CPUs. Raises
+    ValueError, with one line, when the address does not answer."""
+    import socket
+
+    if address:
+        host, _, port = address.removeprefix("ray://").rpartition(":")
+        try:
+            socket.create_connection((host, int(port)), timeout=5).close()
+        except (OSError, ValueError):
+            raise ValueError(f"no Ray cluster answers at --ray-address {address} (start one with `ray start --head`)") from None
+    import ray
+
+    ray.init(address=address or None, num_cpus=None if address else workers, include_dashboard=False, log_to_driver=False,
+             configure_logging=False)  # fmt: skip
+
+
+def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=None, launch=launch_local):
     """Run what is not finished, `workers` at a time. Returns the number of runs that failed."""
     todo, done = [], 0
     for job in jobs:
@@ -322,9 +398,7 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                 log.flush()
                 # A session of its own: Ctrl-C in the terminal reaches only this runner, which then
                 # stops each run exactly once, so that no second signal cuts a checkpoint save short.
-                proc = subprocess.Popen([sys.executable, *cmd[1:]], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                                        env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
-                (job.run_dir / "pid").write_text(str(proc.pid))
+                proc = launch(job, cmd, log)
                 running[proc] = (job, time.time(), commit_of(job.script), resumed, log)
                 if stopping:  # a signal came while this one was starting
                     proc.terminate()
@@ -384,6 +458,9 @@ def main():
     parser.add_argument("--runs-dir", type=Path, help="where run directories and checkpoints live (default: benchmarks/runs)")
     parser.add_argument("--status-every", type=float, default=60.0, help="seconds between progress lines")
     parser.add_argument("--list", action="store_true", help="print the grid and what is finished, and run nothing")
+    parser.add_argument("--backend", choices=["local", "ray"], default="local",
+                        help="local: subprocesses of this runner; ray: one Ray task a run, on a local Ray instance or --ray-address")
+    parser.add_argument("--ray-address", help="a Ray cluster to join, such as 10.0.0.1:6379 (default: start a local instance)")
     args = parser.parse_args()
     try:
         if args.workers <= 0:
@@ -399,7 +476,14 @@ def main():
             state = "finished" if job.csv.exists() else ("checkpoint" if job.checkpoint.exists() else "not started")
             print(f"{job.name:50s} {state:12s} {shlex.join(job.command())}")
         return
-    failed = run_grid(jobs, args.workers, args.save_every, args.status_every, args.results_dir)
+    if args.backend == "ray" and not all(job.csv.exists() for job in jobs):  # Ray starts only when there is a run to do
+        try:
+            start_ray(args.ray_address, args.workers)
+        except ValueError as e:
+            sys.exit(f"run.py: error: {e}")
+    # On Ray, as many runs at once as the cluster has CPUs (a run asks for one); locally, --workers.
+    workers = int(sys.modules["ray"].cluster_resources().get("CPU", 1)) if "ray" in sys.modules else args.workers
+    failed = run_grid(jobs, workers, args.save_every, args.status_every, args.results_dir, RayRun if args.backend == "ray" else launch_local)
     finished = sum(job.csv.exists() for job in jobs)
     print(f"{finished}/{len(jobs)} runs finished" + (f", {failed} failed" if failed else ""))
     if failed:

@@ -151,6 +151,62 @@ def test_runner_resumes_an_interrupted_run(tmp_path):
     assert [a[4] for a in attempts] == ["start", "resume"] and [a[3] for a in attempts] == ["130", "0"]
 
 
+# ---------------------------------------------------------------- the Ray backend, on a local Ray instance
+
+
+def test_ray_backend_makes_the_same_results_as_the_local_one_and_skips_them_after(tmp_path):
+    pytest.importorskip("ray")  # benchmarks/requirements.txt; .ci/run installs it
+    grid = ["table1", "--variants", "kl0.01", *TINY_GRID, "--total-timesteps", "2048"]
+    runner(*grid, tmp_path=tmp_path / "local")
+    first = runner(*grid, "--backend", "ray", tmp_path=tmp_path / "ray")
+    assert "done   InvertedPendulum-v5__kl0.01__seed1" in first.stdout and "1/1 runs finished" in first.stdout
+    files = {p.relative_to(tmp_path / "ray" / "results") for p in (tmp_path / "ray" / "results").rglob("*.csv")}
+    assert files == {p.relative_to(tmp_path / "local" / "results") for p in (tmp_path / "local" / "results").rglob("*.csv")}
+    for path in files:  # the same run, to the episode and to beta's every value: only when, and how long, differ
+        local, ray = (tmp_path / backend / "results" / path for backend in ("local", "ray"))
+        if path.parent.name == "beta":
+            assert local.read_text() == ray.read_text()
+            continue
+        (meta_l, rows_l), (meta_r, rows_r) = read_csv(local), read_csv(ray)
+        assert rows_l == rows_r and meta_l.keys() == meta_r.keys()
+        assert meta_l["command"].replace(str(tmp_path / "local"), "") == meta_r["command"].replace(str(tmp_path / "ray"), "")
+    again = runner(*grid, "--backend", "ray", tmp_path=tmp_path / "ray")
+    assert "1/1 runs finished, 0 to run" in again.stdout and "start" not in again.stdout
+
+
+def test_ray_backend_stops_every_run_at_a_checkpoint_and_resumes(tmp_path):
+    pytest.importorskip("ray")
+    total = 6 * 2048
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "table1", "--variants", "kl0.01", *TINY_GRID, "--total-timesteps",
+           str(total), "--save-every", "1", "--backend", "ray", "--results-dir", str(tmp_path / "results"), "--runs-dir", str(tmp_path / "runs")]  # fmt: skip
+    run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 180
+    while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, (out, err)
+    assert "its checkpoint is kept" in out
+    saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert 0 < saved["global_step"] < total
+    resumed = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0 and "resume InvertedPendulum-v5__kl0.01__seed1" in resumed.stdout, resumed.stdout + resumed.stderr
+    meta, _ = read_csv(tmp_path / "results" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1.csv")
+    assert int(meta["global_step"]) == total and int(meta["attempts"]) == 2
+
+
+@pytest.mark.parametrize("args, message", [
+    (["table1", "--variants", "clip0.25", "--backend", "ray"], "has no variant 'clip0.25'"),
+    (["table1", *TINY_GRID, "--backend", "ray", "--ray-address", "127.0.0.1:1"], "no Ray cluster answers at --ray-address 127.0.0.1:1"),
+])  # fmt: skip
+def test_ray_backend_rejects_a_bad_grid_or_address_in_one_line(tmp_path, args, message):
+    proc = runner(*args, tmp_path=tmp_path, check=False)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode != 0 and len(lines) == 1 and message in lines[0], proc.stderr
+    assert not (tmp_path / "runs").exists(), "nothing may start"
+
+
 # ---------------------------------------------------------------- the report, on hand-made CSVs
 
 
@@ -267,6 +323,9 @@ def test_readme_results_block_is_generated_from_the_committed_csvs(path, full):
     readme = (ROOT / path).read_text()
     start, end = readme.index(report.README_START), readme.index(report.README_END) + len(report.README_END)
     assert readme[start:end] == report.readme_block(full=full), "run python benchmarks/report.py"
+    if full:  # the cost of Table 1 on a cluster, from the runs' wall times
+        start, end = readme.index(report.COST_START), readme.index(report.COST_END) + len(report.COST_END)
+        assert readme[start:end] == report.cost_block(), "run python benchmarks/report.py"
     for folder in report.suite_folders():
         assert (folder / "report.md").exists()
         for env in {r.env_id for r in report.load_runs(folder)}:
