@@ -315,7 +315,7 @@ def atari_table(runs, reference, variants, results):
         wall = [float(r.meta["wall_time_s"]) for r in runs if r.variant == v and "wall_time_s" in r.meta]
         if wall:
             lines.append(f"- {ATARI_NAMES.get(v, v)}: a run took {statistics.mean(wall) / 60:.0f} min of wall time on average here"
-                         f" ({len(wall)} run{'s' if len(wall) > 1 else ''}; the machine and its load are in the run table).")  # fmt: skip
+                         f" ({len(wall)} run{'s' if len(wall) > 1 else ''}; other work may have shared the machine).")  # fmt: skip
     lines.append("- The paper's budget, 10M steps, on a GPU: `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`.")
     return lines
 
