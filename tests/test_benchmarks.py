@@ -117,14 +117,15 @@ def test_runner_finishes_skips_and_shares_identical_runs(tmp_path):
     assert not (tmp_path / "runs" / run.results_folder("table1", 4096)).exists()
 
 
-def test_runner_resumes_an_interrupted_run(tmp_path):
-    total = 6 * 2048  # six iterations, with a checkpoint after each
+def interrupt_at_first_checkpoint(tmp_path, total, *extra):
+    """Start a sweep of one KL run of `total` steps, SIGTERM the runner once the run has saved a checkpoint,
+    and check that it stopped there. Returns the runner's command and the checkpoint's step."""
     cmd = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "table1", "--variants", "kl0.01", *TINY_GRID,
            "--total-timesteps", str(total), "--save-every", "1", "--results-dir", str(tmp_path / "results"),
-           "--runs-dir", str(tmp_path / "runs"), "--status-every", "1"]  # fmt: skip
+           "--runs-dir", str(tmp_path / "runs"), "--status-every", "1", *extra]  # fmt: skip
     run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
+    deadline = time.time() + 180
     while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
         time.sleep(0.05)
     proc.send_signal(signal.SIGTERM)
@@ -133,12 +134,18 @@ def test_runner_resumes_an_interrupted_run(tmp_path):
     assert "its checkpoint is kept" in out and "Traceback" not in err
     saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert 0 < saved["global_step"] < total
+    return cmd, saved["global_step"], run_dir
+
+
+def test_runner_resumes_an_interrupted_run(tmp_path):
+    total = 6 * 2048  # six iterations, with a checkpoint after each
+    _, saved_step, run_dir = interrupt_at_first_checkpoint(tmp_path, total)
     csv_path = tmp_path / "results" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1.csv"
     assert not csv_path.exists(), "an unfinished run has no CSV"
 
     resumed = runner("table1", "--variants", "kl0.01", *TINY_GRID, "--total-timesteps", str(total), "--save-every", "1", tmp_path=tmp_path)
     assert "resume InvertedPendulum-v5__kl0.01__seed1" in resumed.stdout
-    assert f"at step {saved['global_step']:,}" in (run_dir / "log.txt").read_text()
+    assert f"at step {saved_step:,}" in (run_dir / "log.txt").read_text()
     meta, rows = read_csv(csv_path)
     assert int(meta["global_step"]) == total and int(meta["attempts"]) == 2
     assert meta["command"].startswith("python ppo_kl_penalty.py ") and "beta_range" in meta
@@ -177,19 +184,7 @@ def test_ray_backend_makes_the_same_results_as_the_local_one_and_skips_them_afte
 def test_ray_backend_stops_every_run_at_a_checkpoint_and_resumes(tmp_path):
     pytest.importorskip("ray")
     total = 6 * 2048
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "table1", "--variants", "kl0.01", *TINY_GRID, "--total-timesteps",
-           str(total), "--save-every", "1", "--backend", "ray", "--results-dir", str(tmp_path / "results"), "--runs-dir", str(tmp_path / "runs")]  # fmt: skip
-    run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 180
-    while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
-    out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, (out, err)
-    assert "its checkpoint is kept" in out
-    saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
-    assert 0 < saved["global_step"] < total
+    cmd, _, _ = interrupt_at_first_checkpoint(tmp_path, total, "--backend", "ray")
     resumed = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0 and "resume InvertedPendulum-v5__kl0.01__seed1" in resumed.stdout, resumed.stdout + resumed.stderr
     meta, _ = read_csv(tmp_path / "results" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1.csv")
