@@ -3,6 +3,7 @@
     python benchmarks/run.py mujoco                     # the paper's 7 tasks, 1M steps, 3 seeds
     python benchmarks/run.py table1 --variants no-clip clip0.2 kl0.01 --envs Hopper Swimmer
     python benchmarks/run.py table1 --list              # print the grid and what is done, run nothing
+    python benchmarks/run.py table1 --backend ray --ray-address HEAD:6379   # each run a Ray task, on a cluster
 
 Each run is its own process (`python ppo_*.py ... --torch-threads 1 --run-dir ...`), up to
 --workers at a time. A finished run becomes one CSV, benchmarks/results/<suite>/<env>__<variant>__seed<N>.csv:
