@@ -179,15 +179,41 @@ BAD_INPUTS = [
 ]
 
 
-@pytest.mark.parametrize("args,message", BAD_INPUTS, ids=[m for _, m in BAD_INPUTS])
-def test_bad_input_is_one_clear_line_before_training(script, tmp_path, args, message):
+# A few of them through a new interpreter, as a user's shell runs the script; every one through main() in this
+# process, which is the same code from the parsing of argv on, without a second or two of imports per case.
+IN_A_SUBPROCESS = {"--learning-rate must be a finite number, got nan", "unknown env id", "is a file"}
+
+
+def bad_input_files(tmp_path):
     (tmp_path / "corrupt.pt").write_bytes(b"\x80\x02this is not a checkpoint")
     (tmp_path / "afile").write_text("")
     (tmp_path / "oldrun").mkdir()
     (tmp_path / "oldrun" / "events.out.tfevents.1.host").write_bytes(b"")
     torch.save({"some": "dict"}, tmp_path / "notacheckpoint.pt")
+
+
+@pytest.mark.parametrize("args,message", BAD_INPUTS, ids=[m for _, m in BAD_INPUTS])
+def test_bad_input_is_one_clear_line_before_training(script, tmp_path, args, message, monkeypatch, capsys):
+    bad_input_files(tmp_path)
     args = [a.format(**TINY[script]) for a in args]
-    proc = run_cli(script, *args, cwd=tmp_path, check=False)
+    module = load_script(script)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [script, *args])
+    monkeypatch.setattr(module, "train", lambda args: pytest.fail("training started"))
+    monkeypatch.setattr(module, "evaluate", lambda args: pytest.fail("evaluation started"))
+    with pytest.raises(SystemExit) as stopped:
+        module.main()
+    err = capsys.readouterr().err
+    assert stopped.value.code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "error:" in lines[0] and message in lines[0], err
+    assert not (tmp_path / "runs").exists(), "training started"
+
+
+@pytest.mark.parametrize("args,message", [case for case in BAD_INPUTS if case[1] in IN_A_SUBPROCESS], ids=sorted(IN_A_SUBPROCESS))
+def test_bad_input_from_the_shell_is_one_line_and_exit_2(script, tmp_path, args, message):
+    bad_input_files(tmp_path)
+    proc = run_cli(script, *[a.format(**TINY[script]) for a in args], cwd=tmp_path, check=False)
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "error:" in lines[0] and message in lines[0], proc.stderr
