@@ -268,28 +268,26 @@ def fmt_time(seconds):
     return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
 
 
+def start_process(cmd, root, log, run_dir):
+    """Start a run's command in a session of its own, logging to `log`, and note its pid in the run's folder."""
+    proc = subprocess.Popen([sys.executable, *cmd[1:]], cwd=root, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
+    (Path(run_dir) / "pid").write_text(str(proc.pid))
+    return proc
+
+
 def launch_local(job, cmd, log):
     """Start a run as a subprocess of this runner."""
-    proc = subprocess.Popen([sys.executable, *cmd[1:]], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
-    (job.run_dir / "pid").write_text(str(proc.pid))
-    return proc
+    return start_process(cmd, ROOT, log, job.run_dir)
 
 
 def ray_run(cmd, root, log_path, run_dir):
     """A Ray task: run one training command on whichever node Ray picked, in the same repository path,
     logging to the run's folder, until it ends or the runner asks it to stop (a file, 'stop', in the
     run's folder: a Ray task cannot be sent SIGTERM, and its process must save its checkpoint)."""
-    import subprocess
-    import sys
-    import time
-    from pathlib import Path
-
     stop_file = Path(run_dir) / "stop"
     with open(log_path, "a") as log:
-        proc = subprocess.Popen([sys.executable, *cmd[1:]], cwd=root, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                                env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
-        (Path(run_dir) / "pid").write_text(str(proc.pid))
+        proc = start_process(cmd, root, log, run_dir)
         while proc.poll() is None:
             if stop_file.exists():
                 proc.terminate()  # the script saves its checkpoint and exits 130
