@@ -59,16 +59,38 @@ def script(request):
     return request.param
 
 
+# The tests run two at a time on two cores (pytest -n 2), so each script gets one torch thread: two threads each
+# would contend for the cores and slow every run down.
+ONE_THREAD = ["--torch-threads", "1"]
+
+
 def run_cli(script, *args, cwd, timeout=300, check=True):
-    """Run a script's real command line in `cwd`; return the CompletedProcess."""
+    """Run a script's real command line in `cwd`, with one torch thread; return the CompletedProcess."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}  # MUJOCO_GL is left to the scripts' own default
     proc = subprocess.run(
-        [sys.executable, str(ROOT / script), *map(str, args)],
+        [sys.executable, str(ROOT / script), *map(str, args), *ONE_THREAD],
         cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout,
     )  # fmt: skip
     if check and proc.returncode != 0:
         raise AssertionError(f"{script} {' '.join(map(str, args))} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
     return proc
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """The tiny training run of a script, made once per test process and shared by the tests that only read it
+    (a test that writes to its checkpoint works on a copy): tiny_run(script) -> (run_dir, CompletedProcess)."""
+    runs = {}
+
+    def get(script):
+        if script not in runs:
+            cwd = tmp_path_factory.mktemp(script[: -len(".py")])
+            cfg = TINY[script]
+            proc = run_cli(script, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", cwd / "run", cwd=cwd)
+            runs[script] = (cwd / "run", proc)
+        return runs[script]
+
+    return get
 
 
 def tb_scalars(run_dir):

@@ -200,7 +200,7 @@ def test_fire_on_life_loss(fire_on_life_loss, tmp_path, monkeypatch):
 
     monkeypatch.setattr(ale_py.AtariVectorEnv, "step", step)
     atari.train(atari.Args(num_envs=4, num_steps=128, minibatch_size=128, update_epochs=1, total_timesteps=512,
-                           fire_on_life_loss=fire_on_life_loss, run_dir=str(tmp_path / "run")))  # fmt: skip
+                           fire_on_life_loss=fire_on_life_loss, torch_threads=1, run_dir=str(tmp_path / "run")))  # fmt: skip
     fire = [a.name for a in atari.make_envs(atari.Args(num_envs=1)).ale.get_action_set()].index("FIRE")
     after_lost_life = [next_actions[i] for (_, term, frames), (next_actions, _, new_frames) in zip(steps, steps[1:])
                        for i in np.flatnonzero(term & (new_frames > frames))]  # fmt: skip
@@ -231,19 +231,14 @@ def test_orthogonal_init_gains():
         assert torch.count_nonzero(layer.bias) == 0
 
 
-def test_logged_return_is_the_whole_game(tmp_path):
+def test_logged_return_is_the_whole_game(tiny_run):
     # A random Breakout game lasts a few hundred agent steps over 5 lives; one life, a few dozen.
-    run_dir = tmp_path / "run"
-    run_cli("ppo_atari.py", "--env-id", TINY["ppo_atari.py"]["env_id"], "--num-envs", "2", "--num-steps", "128",
-            "--minibatch-size", "128", "--update-epochs", "1", "--total-timesteps", "1536", "--run-dir", run_dir, cwd=tmp_path)  # fmt: skip
-    lengths = [v for _, v in tb_scalars(run_dir)["charts/episodic_length"]]
+    lengths = [v for _, v in tb_scalars(tiny_run("ppo_atari.py")[0])["charts/episodic_length"]]
     assert lengths and min(lengths) > 60, lengths
 
 
-def test_clip_range_and_learning_rate_anneal_together(tmp_path):
-    run_dir = tmp_path / "run"
-    run_cli("ppo_atari.py", "--env-id", TINY["ppo_atari.py"]["env_id"], *TINY["ppo_atari.py"]["tiny"], "--run-dir", run_dir, cwd=tmp_path)
-    scalars = tb_scalars(run_dir)
+def test_clip_range_and_learning_rate_anneal_together(tiny_run):
+    scalars = tb_scalars(tiny_run("ppo_atari.py")[0])
     n = len(scalars["charts/clip_coef"])
     alpha = [1 - i / n for i in range(n)]  # 1 at the first iteration, falling linearly towards 0
     assert n >= 2
