@@ -214,12 +214,24 @@ def score_table(runs, reference, columns, variants, results):
     return lines
 
 
+def best_window(rows, window=100):
+    """The best mean return of `window` consecutive episodes during training, and the step at which that window
+    ends: beside the score (the last window), it shows a run that peaked and then fell back."""
+    returns = [r[1] for r in rows]
+    n = min(window, len(returns))
+    means = [statistics.mean(returns[i - n : i]) for i in range(n, len(returns) + 1)]
+    best = max(range(len(means)), key=means.__getitem__)
+    return means[best], rows[best + n - 1][0]
+
+
 def run_table(runs):
-    lines = ["| env | variant | seed | steps | episodes | score | wall time | commit | beta range |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| env | variant | seed | steps | episodes | score | best 100 episodes (at step) | wall time | commit | beta range |",
+             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for r in sorted(runs, key=lambda r: (r.env_id, r.variant, r.seed)):
         wall = f"{float(r.meta['wall_time_s']) / 60:.0f} min" if "wall_time_s" in r.meta else "–"
+        best, at = best_window(r.rows)
         lines.append(f"| {r.env_id} | {r.variant} | {r.seed} | {int(r.meta['global_step']):,} | {len(r.rows)} | {fmt(r.score)}"
-                     f" | {wall} | {r.meta.get('commit', '–')} | {r.meta.get('beta_range', '–')} |")  # fmt: skip
+                     f" | {fmt(best)} ({at:,}) | {wall} | {r.meta.get('commit', '–')} | {r.meta.get('beta_range', '–')} |")  # fmt: skip
     return lines
 
 

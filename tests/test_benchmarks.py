@@ -4,6 +4,7 @@ grid before it starts anything, and the report's arithmetic is the paper's."""
 import csv
 import math
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -303,6 +304,13 @@ def test_learning_curve_is_the_trailing_100_episode_mean():
             assert value == pytest.approx(sum(finished) / len(finished))
         else:
             assert math.isnan(value)
+
+
+def test_best_window_finds_a_peak_the_score_misses():
+    # 300 episodes, episode i ending at step 10 * i: returns of 0, but 10 for episodes 51 to 200. The score is 0.
+    rows = [(10 * i, 10.0 if 50 < i <= 200 else 0.0, 1) for i in range(1, 301)]
+    assert report.best_window(rows) == (10.0, 1_500)  # the first window of 100 tens: episodes 51 to 150
+    assert report.best_window(rows[:40]) == (statistics.mean(r[1] for r in rows[:40]), 400)  # fewer than 100: all of them
 
 
 def test_reference_figures_have_a_source_each():
