@@ -190,9 +190,18 @@ def suite_variants(kind):
     return list(SUITES[kind].variants) if kind in SUITES else []
 
 
-def ordered_variants(kind, runs):
+def suite_name(folder):
+    """The run.py suite a results folder holds: 'shortfalls' for shortfalls/, 'table1' for table1_300k/."""
+    from run import SUITES
+
+    name = Path(folder).name
+    return max((k for k in SUITES if name == k or name.startswith(k + "_")), key=len, default=suite_kind(folder))
+
+
+def ordered_variants(suite, runs):
+    """The variants of the runs, in the order run.py defines them for `suite` (its default first)."""
     present = {r.variant for r in runs}
-    return [v for v in suite_variants(kind) if v in present] + sorted(present - set(suite_variants(kind)))
+    return [v for v in suite_variants(suite) if v in present] + sorted(present - set(suite_variants(suite)))
 
 
 def score_table(runs, reference, columns, variants, results):
@@ -250,7 +259,7 @@ def suite_kind(folder):
 
 def tables(folder, runs, reference, results, level="##"):
     """The tables of a suite: Table 1's normalized score (for table1), then the scores per env."""
-    kind, variants = suite_kind(folder), ordered_variants(suite_kind(folder), runs)
+    kind, variants = suite_kind(folder), ordered_variants(suite_name(folder), runs)
     lines = []
     if kind == "table1":
         envs = sorted({r.env_id for r in runs})
@@ -290,6 +299,30 @@ def tables(folder, runs, reference, results, level="##"):
     if kind == "atari":
         return lines + atari_table(runs, reference, variants, results)
     lines += score_table(runs, reference, COLUMNS[kind], variants, results)
+    if kind == "mujoco" and len(variants) > 1:  # a suite that tests changes against a default: shortfalls, beta_collapse
+        lines += comparison(runs, reference, variants)
+    return lines
+
+
+def comparison(runs, reference, variants):
+    """Each setting against the first (the suite's default), per env: the difference of the mean scores with its
+    standard error, and whether the setting reaches the paper's figure."""
+    base, by_env = variants[0], group(runs)
+    lines = ["", f"Against `{base}`: the difference of the mean scores ± its standard error, sqrt(s1²/n1 + s2²/n2);"
+             " **bold** where the difference is more than twice that. With 3 seeds a side this is a rough guide, not a test.", "",
+             f"| env | setting | score (n) | difference from {base} | reaches the paper's Fig. 3 (clip 0.2, approx.) |", "|---|---|---|---|---|"]  # fmt: skip
+    for env in sorted(by_env):
+        paper = reference.get(("paper_fig3", env_base(env), "clip0.2"))
+        base_scores = [r.score for r in by_env[env].get(base, [])]
+        for v in [v for v in variants if v in by_env[env]]:
+            scores = [r.score for r in by_env[env][v]]
+            diff = "–"
+            if v != base and len(scores) > 1 and len(base_scores) > 1:
+                d = statistics.mean(scores) - statistics.mean(base_scores)
+                se = math.sqrt(statistics.variance(scores) / len(scores) + statistics.variance(base_scores) / len(base_scores))
+                diff = f"**{d:+,.1f} ± {se:,.1f}**" if abs(d) > 2 * se else f"{d:+,.1f} ± {se:,.1f}"
+            reached = "–" if not paper else f"{'yes' if statistics.mean(scores) >= paper[0] else 'no'} ({fmt(paper[0])})"
+            lines.append(f"| {env} | {v} | {fmt(*mean_std(scores))} ({len(scores)}) | {diff} | {reached} |")
     return lines
 
 
@@ -340,7 +373,7 @@ def report(folder, reference=None, results=RESULTS):
         raise ValueError(f"{folder} has no run CSVs")
     reference = reference if reference is not None else load_reference()
     kind = suite_kind(folder)
-    variants = ordered_variants(kind, runs)
+    variants = ordered_variants(suite_name(folder), runs)
     lines = [
         f"# {folder.name}: scores",
         "",

@@ -263,6 +263,22 @@ def test_report_normalizes_as_the_paper_does(tmp_path):
         assert f"curves/{env}.png" in text
 
 
+def test_a_suite_of_changes_is_compared_with_its_default(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "shortfalls"
+    fake_random(results, "Swimmer-v5", [0.0])
+    for seed, (default, gamma) in enumerate([(80.0, 110.0), (90.0, 120.0), (100.0, 130.0)], start=1):
+        fake_run(folder, "Swimmer-v5", "clip0.2", seed, default)
+        fake_run(folder, "Swimmer-v5", "gamma0.999", seed, gamma)
+    fake_run(folder, "Swimmer-v5", "const-lr", 1, 95.0)  # one seed: no std, so no difference is claimed
+    reference = {("paper_fig3", "Swimmer", "clip0.2"): (110.0, None, "the paper")}
+    text = report.report(folder, reference=reference, results=results)
+    se = math.sqrt(100 / 3 + 100 / 3)  # both samples have variance 100
+    assert f"| Swimmer-v5 | gamma0.999 | 120.0 ± 10.0 (3) | **+30.0 ± {se:.1f}** | yes (110.0) |" in text
+    assert "| Swimmer-v5 | clip0.2 | 90.00 ± 10.00 (3) | – | no (110.0) |" in text
+    assert "| Swimmer-v5 | const-lr | 95.00 (1) | – | no (110.0) |" in text
+
+
 @pytest.mark.parametrize("kl003_score, holds", [(80.0, True), (120.0, False)])
 def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds):
     results = tmp_path / "results"
