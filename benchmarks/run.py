@@ -252,7 +252,7 @@ def running_elsewhere(job):
 
 
 def last_step(job):
-    """The latest step a running job printed, from its log (the scripts print one every 30 s)."""
+    """The latest step a running job printed, from its log (the scripts print one every 10 s or so)."""
     try:
         with open(job.run_dir / "log.txt", "rb") as f:
             f.seek(max(0, os.path.getsize(f.name) - 4096))
