@@ -352,7 +352,11 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
         source = find_equivalent(job, results_root)
         if source is not None:
             job.csv.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(source, job.csv)
+            beta = source.parent / "beta" / source.name  # a KL run's beta series goes with it
+            if beta.exists():
+                (job.results_dir / "beta").mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(beta, job.results_dir / "beta" / job.csv.name)
+            shutil.copyfile(source, job.csv)  # last, as in finish(): the CSV's presence means the run is finished
             print(f"{job.name}: the same run is finished in {_rel(source)}; copied", flush=True)
             done += 1
             continue

@@ -118,6 +118,19 @@ def test_runner_finishes_skips_and_shares_identical_runs(tmp_path):
     assert not (tmp_path / "runs" / run.results_folder("table1", 4096)).exists()
 
 
+def test_a_shared_kl_run_brings_its_beta_series(tmp_path):
+    # beta_collapse's kl0.01 runs are table1's: the copy must carry the beta series that the beta plot reads.
+    source = tmp_path / "results" / run.results_folder("table1", 4096)
+    fake_run(source, "Hopper-v5", "kl0.01", 1, 100.0, steps=4096)
+    (source / "beta").mkdir()
+    (source / "beta" / "Hopper-v5__kl0.01__seed1.csv").write_text("global_step,beta,kl\n2048,1,0.01\n4096,0.5,0.001\n")
+    shared = runner("beta_collapse", "--variants", "kl0.01", "--seeds", "1", "--total-timesteps", "4096", tmp_path=tmp_path)
+    assert "copied" in shared.stdout and "start" not in shared.stdout
+    copy = tmp_path / "results" / run.results_folder("beta_collapse", 4096)
+    assert (copy / "Hopper-v5__kl0.01__seed1.csv").read_bytes() == (source / "Hopper-v5__kl0.01__seed1.csv").read_bytes()
+    assert (copy / "beta" / "Hopper-v5__kl0.01__seed1.csv").read_text() == (source / "beta" / "Hopper-v5__kl0.01__seed1.csv").read_text()
+
+
 def interrupt_at_first_checkpoint(tmp_path, total, *extra):
     """Start a sweep of one KL run of `total` steps, SIGTERM the runner once the run has saved a checkpoint,
     and check that it stopped there. Returns the runner's command and the checkpoint's step."""
