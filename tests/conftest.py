@@ -76,6 +76,13 @@ def run_cli(script, *args, cwd, timeout=300, check=True):
     return proc
 
 
+def train_tiny(script, cwd, name="run", *extra):
+    """A tiny training run of a script in cwd/name: (run_dir, CompletedProcess)."""
+    cfg = TINY[script]
+    run_dir = cwd / name
+    return run_dir, run_cli(script, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", run_dir, *extra, cwd=cwd)
+
+
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory):
     """The tiny training run of a script, made once per test process and shared by the tests that only read it
@@ -84,10 +91,7 @@ def tiny_run(tmp_path_factory):
 
     def get(script):
         if script not in runs:
-            cwd = tmp_path_factory.mktemp(script[: -len(".py")])
-            cfg = TINY[script]
-            proc = run_cli(script, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", cwd / "run", cwd=cwd)
-            runs[script] = (cwd / "run", proc)
+            runs[script] = train_tiny(script, tmp_path_factory.mktemp(script[: -len(".py")]))
         return runs[script]
 
     return get

@@ -10,20 +10,13 @@ import time
 import numpy as np
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, SCRIPTS, TINY, load_script, run_cli, tb_scalars
+from conftest import ONE_THREAD, ROOT, SCRIPTS, TINY, load_script, run_cli, tb_scalars, train_tiny
 
 EXPECTED_SCALARS = {
     "charts/episodic_return", "charts/episodic_length", "charts/learning_rate", "charts/SPS",
     "losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl",
     "losses/old_approx_kl", "losses/clipfrac", "losses/explained_variance", "losses/loss",
 }  # fmt: skip
-
-
-def train_tiny(script, cwd, name="run", *extra):
-    cfg = TINY[script]
-    run_dir = cwd / name
-    proc = run_cli(script, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", run_dir, *extra, cwd=cwd)
-    return run_dir, proc
 
 
 def weights(run_dir):
