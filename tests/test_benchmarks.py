@@ -342,6 +342,18 @@ def test_best_window_finds_a_peak_the_score_misses():
     assert report.best_window(rows[:40]) == (statistics.mean(r[1] for r in rows[:40]), 400)  # fewer than 100: all of them
 
 
+def test_quick_start_promises_what_the_default_hopper_runs_did(tmp_path):
+    folder = tmp_path / "mujoco"
+    assert "no benchmark run" in report.quickstart_block(tmp_path)
+    folder.mkdir()
+    fake_run(folder, "Hopper-v5", "clip0.2", 1, 3000.0)
+    fake_run(folder, "Hopper-v5", "clip0.2", 2, 1000.0)
+    fake_run(folder, "Walker2d-v5", "clip0.2", 1, 9999.0)  # another env and another setting do not count
+    fake_run(folder, "Hopper-v5", "const-lr", 1, 5000.0)
+    line = report.quickstart_block(tmp_path).splitlines()[1]
+    assert "took 1–1 min per run" in line and "1,000–3,000 over the last 100 episodes (2 seeds" in line, line
+
+
 def test_reference_figures_have_a_source_each():
     reference = report.load_reference()
     assert len(reference) >= 30
@@ -358,6 +370,9 @@ def test_readme_results_block_is_generated_from_the_committed_csvs(path, full):
     if full:  # the cost of Table 1 on a cluster, from the runs' wall times
         start, end = readme.index(report.COST_START), readme.index(report.COST_END) + len(report.COST_END)
         assert readme[start:end] == report.cost_block(), "run python benchmarks/report.py"
+    else:  # the quick start's time and score, from the mujoco suite's Hopper runs
+        start, end = readme.index(report.QUICK_START), readme.index(report.QUICK_END) + len(report.QUICK_END)
+        assert readme[start:end] == report.quickstart_block(), "run python benchmarks/report.py"
     for folder in report.suite_folders():
         assert (folder / "report.md").exists()
         for env in {r.env_id for r in report.load_runs(folder)}:
