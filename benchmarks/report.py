@@ -305,24 +305,28 @@ def tables(folder, runs, reference, results, level="##"):
 
 
 def comparison(runs, reference, variants):
-    """Each setting against the first (the suite's default), per env: the difference of the mean scores with its
-    standard error, and whether the setting reaches the paper's figure."""
+    """Each setting against the first (the suite's default) on the env's newest version, per env: the difference of
+    the mean scores with its standard error, and whether the setting reaches the paper's figure. An older version of
+    an env (IDP-v4 beside IDP-v5) is compared with the same default on the newest."""
     base, by_env = variants[0], group(runs)
-    lines = ["", f"Against `{base}`: the difference of the mean scores ± its standard error, sqrt(s1²/n1 + s2²/n2);"
-             " **bold** where the difference is more than twice that. With 3 seeds a side this is a rough guide, not a test.", "",
+    lines = ["", f"Against `{base}` on the env's newest version: the difference of the mean scores ± its standard error,"
+             " sqrt(s1²/n1 + s2²/n2); **bold** where the difference is more than twice that. With 3 seeds a side this is"
+             " a rough guide, not a test.", "",
              f"| env | setting | score (n) | difference from {base} | reaches the paper's Fig. 3 (clip 0.2, approx.) |", "|---|---|---|---|---|"]  # fmt: skip
-    for env in sorted(by_env):
-        paper = reference.get(("paper_fig3", env_base(env), "clip0.2"))
-        base_scores = [r.score for r in by_env[env].get(base, [])]
-        for v in [v for v in variants if v in by_env[env]]:
-            scores = [r.score for r in by_env[env][v]]
-            diff = "–"
-            if v != base and len(scores) > 1 and len(base_scores) > 1:
-                d = statistics.mean(scores) - statistics.mean(base_scores)
-                se = math.sqrt(statistics.variance(scores) / len(scores) + statistics.variance(base_scores) / len(base_scores))
-                diff = f"**{d:+,.1f} ± {se:,.1f}**" if abs(d) > 2 * se else f"{d:+,.1f} ± {se:,.1f}"
-            reached = "–" if not paper else f"{'yes' if statistics.mean(scores) >= paper[0] else 'no'} ({fmt(paper[0])})"
-            lines.append(f"| {env} | {v} | {fmt(*mean_std(scores))} ({len(scores)}) | {diff} | {reached} |")
+    for name in sorted({env_base(env) for env in by_env}):
+        envs = sorted((env for env in by_env if env_base(env) == name), key=lambda env: int(env.rsplit("-v", 1)[1]), reverse=True)
+        paper = reference.get(("paper_fig3", name, "clip0.2"))
+        base_scores = [r.score for r in by_env[envs[0]].get(base, [])]
+        for env in envs:
+            for v in [v for v in variants if v in by_env[env]]:
+                scores = [r.score for r in by_env[env][v]]
+                diff = "–"
+                if (env, v) != (envs[0], base) and len(scores) > 1 and len(base_scores) > 1:
+                    d = statistics.mean(scores) - statistics.mean(base_scores)
+                    se = math.sqrt(statistics.variance(scores) / len(scores) + statistics.variance(base_scores) / len(base_scores))
+                    diff = f"**{d:+,.1f} ± {se:,.1f}**" if abs(d) > 2 * se else f"{d:+,.1f} ± {se:,.1f}"
+                reached = "–" if not paper else f"{'yes' if statistics.mean(scores) >= paper[0] else 'no'} ({fmt(paper[0])})"
+                lines.append(f"| {env} | {v} | {fmt(*mean_std(scores))} ({len(scores)}) | {diff} | {reached} |")
     return lines
 
 

@@ -292,6 +292,24 @@ def test_a_suite_of_changes_is_compared_with_its_default(tmp_path):
     assert "| Swimmer-v5 | const-lr | 95.00 (1) | – | no (110.0) |" in text
 
 
+def test_an_older_env_version_is_compared_with_the_default_on_the_newest(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "shortfalls"
+    for seed, (v5, v4) in enumerate([(5000.0, 7000.0), (6000.0, 8000.0), (7000.0, 9000.0)], start=1):
+        fake_run(folder, "InvertedDoublePendulum-v5", "clip0.2", seed, v5)
+        fake_run(folder, "InvertedDoublePendulum-v4", "clip0.2", seed, v4)
+        fake_run(folder, "InvertedDoublePendulum-v5", "const-lr", seed, v5 + 100.0)
+    reference = {("paper_fig3", "InvertedDoublePendulum", "clip0.2"): (8000.0, None, "the paper")}
+    lines = report.report(folder, reference=reference, results=results).splitlines()
+    se = math.sqrt(1e6 / 3 + 1e6 / 3)  # both samples have variance 1000²
+    rows = [line for line in lines if line.startswith("| InvertedDoublePendulum") and "reaches" not in line and line.count("|") == 6]
+    assert rows == [
+        "| InvertedDoublePendulum-v5 | clip0.2 | 6,000 ± 1,000 (3) | – | no (8,000) |",
+        f"| InvertedDoublePendulum-v5 | const-lr | 6,100 ± 1,000 (3) | +100.0 ± {se:,.1f} | no (8,000) |",
+        f"| InvertedDoublePendulum-v4 | clip0.2 | 8,000 ± 1,000 (3) | **+2,000.0 ± {se:,.1f}** | yes (8,000) |",  # beyond 2 SE
+    ]
+
+
 @pytest.mark.parametrize("kl003_score, holds", [(80.0, True), (120.0, False)])
 def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds):
     results = tmp_path / "results"
