@@ -30,7 +30,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import read_csv, replace_between, score  # noqa: E402
+from common import load_script, read_csv, replace_between, score  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 REFERENCE = ROOT / "benchmarks" / "reference_figures.csv"
@@ -552,9 +552,21 @@ def read_beta(folder):
     return out
 
 
+def kl_targets(folder):
+    """{(env_id, variant, seed): d_targ} for the adaptive-KL runs of a folder, from each run's command."""
+    default = load_script("ppo_kl_penalty.py").Args().kl_target
+    out = {}
+    for run in load_runs(folder):
+        words = run.meta.get("command", "").split()
+        if "ppo_kl_penalty.py" in words and "--no-adaptive-beta" not in words:
+            out[run.env_id, run.variant, run.seed] = float(words[words.index("--kl-target") + 1]) if "--kl-target" in words else default
+    return out
+
+
 def beta_section(folder):
     """For the adaptive-KL rows: beta over training, per env, and how it ends (the last 10% of updates)."""
-    series = {key: rows for key, rows in read_beta(folder).items() if key[1].startswith("kl")}
+    targets = kl_targets(folder)
+    series = {key: rows for key, rows in read_beta(folder).items() if key in targets}
     if not series:
         return []
     import matplotlib
@@ -585,13 +597,13 @@ def beta_section(folder):
         fig.savefig(out, dpi=90)
         plt.close(fig)
         for variant in sorted({key[1] for key in series if key[0] == env}):
-            runs = [rows for (e, v, _), rows in series.items() if e == env and v == variant]
-            target = float(variant.removeprefix("kl"))
+            keys = [key for key in sorted(series) if key[:2] == (env, variant)]
+            runs, low_kl = [series[key] for key in keys], [targets[key] / 1.5 for key in keys]
             cut = [int(0.9 * len(rows)) for rows in runs]
             early = statistics.mean(statistics.median(r[1] for r in rows[:c]) for rows, c in zip(runs, cut))
             end = statistics.mean(rows[-1][1] for rows in runs)
-            low = statistics.mean(statistics.mean(r[2] < target / 1.5 for r in rows[c:]) for rows, c in zip(runs, cut))
-            streak = [next((i for i, r in enumerate(reversed(rows)) if r[2] >= target / 1.5), len(rows)) for rows in runs]
+            low = statistics.mean(statistics.mean(r[2] < kl for r in rows[c:]) for rows, c, kl in zip(runs, cut, low_kl))
+            streak = [next((i for i, r in enumerate(reversed(rows)) if r[2] >= kl), len(rows)) for rows, kl in zip(runs, low_kl)]
             lines.append(f"| {env} | {variant} | {len(runs)} | {early:.3g} | {end:.3g} | {low:.0%} | {', '.join(map(str, streak))} |")
     lines += [""] + [f"![beta, {env}](curves/beta-{env}.png)" for env in sorted({key[0] for key in series})]
     return lines

@@ -372,6 +372,29 @@ def test_quick_start_promises_what_the_default_hopper_runs_did(tmp_path):
     assert "took 1–1 min per run" in line and "1,000–3,000 over the last 100 episodes (2 seeds" in line, line
 
 
+def test_beta_section_reads_each_runs_kl_target_from_its_command(tmp_path):
+    """d_targ comes from the run's command (or the script's default), not from the variant's name; a fixed beta is left out."""
+    def kl_run(variant, flags, kls):
+        header = [("command", f"python ppo_kl_penalty.py --env-id Hopper-v5 --seed 1 {flags}".strip()), ("global_step", 2048 * len(kls))]
+        write_csv(tmp_path / f"Hopper-v5__{variant}__seed1.csv", header, [(100, 1.0, 10)])
+        (tmp_path / "beta").mkdir(exist_ok=True)
+        with open(tmp_path / "beta" / f"Hopper-v5__{variant}__seed1.csv", "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["global_step", "beta", "kl"])
+            writer.writerows((2048 * (i + 1), 0.5**i, kl) for i, kl in enumerate(kls))
+
+    kl_run("kl0.01", "", [0.02] * 17 + [0.001] * 3)  # the default d_targ, 0.01: the last 3 updates are below 0.01 / 1.5
+    kl_run("kl0.01-const-lr", "--no-anneal-lr", [0.001] * 19 + [0.012])  # ends above 0.01 / 1.5
+    kl_run("wide", "--kl-target 0.03", [0.015] * 20)  # above 0.01 / 1.5 but below 0.03 / 1.5: all 20 count
+    kl_run("beta3", "--init-beta 3 --no-adaptive-beta", [0.001] * 20)
+    rows = [line for line in report.beta_section(tmp_path) if line.startswith("| Hopper-v5")]
+    assert rows == [
+        f"| Hopper-v5 | kl0.01 | 1 | {statistics.median(0.5**i for i in range(18)):.3g} | {0.5**19:.3g} | 100% | 3 |",
+        f"| Hopper-v5 | kl0.01-const-lr | 1 | {statistics.median(0.5**i for i in range(18)):.3g} | {0.5**19:.3g} | 50% | 0 |",
+        f"| Hopper-v5 | wide | 1 | {statistics.median(0.5**i for i in range(18)):.3g} | {0.5**19:.3g} | 100% | 20 |",
+    ]
+
+
 def test_reference_figures_have_a_source_each():
     reference = report.load_reference()
     assert len(reference) >= 30
