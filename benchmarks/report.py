@@ -552,11 +552,11 @@ def read_beta(folder):
     return out
 
 
-def kl_targets(folder):
-    """{(env_id, variant, seed): d_targ} for the adaptive-KL runs of a folder, from each run's command."""
+def kl_targets(runs):
+    """{(env_id, variant, seed): d_targ} for the adaptive-KL runs among `runs`, from each run's command."""
     default = load_script("ppo_kl_penalty.py").Args().kl_target
     out = {}
-    for run in load_runs(folder):
+    for run in runs:
         words = run.meta.get("command", "").split()
         if "ppo_kl_penalty.py" in words and "--no-adaptive-beta" not in words:
             out[run.env_id, run.variant, run.seed] = float(words[words.index("--kl-target") + 1]) if "--kl-target" in words else default
@@ -565,7 +565,8 @@ def kl_targets(folder):
 
 def beta_section(folder):
     """For the adaptive-KL rows: beta over training, per env, and how it ends (the last 10% of updates)."""
-    targets = kl_targets(folder)
+    runs = {(r.env_id, r.variant, r.seed): r for r in load_runs(folder)}
+    targets = kl_targets(runs.values())
     series = {key: rows for key, rows in read_beta(folder).items() if key in targets}
     if not series:
         return []
@@ -577,9 +578,12 @@ def beta_section(folder):
     lines = ["", "## Beta over training (adaptive KL)", "",
              "From the beta each update used (`losses/beta`). The rule halves beta after each update whose KL is below",
              "d_targ / 1.5. As the learning rate anneals linearly to 0, the last updates are too small to reach that,",
-             "and beta halves again and again: the last column counts the halvings in a row that end each run.", "",
-             "| env | setting | seeds | median beta, first 90% of updates | beta at the end | updates in the last 10% with KL < d_targ / 1.5 | final run of updates with KL < d_targ / 1.5 |",
-             "|---|---|---|---|---|---|---|"]  # fmt: skip
+             "and beta halves again and again: the halvings column counts the halvings in a row that end each run.",
+             "The last two columns bound what the last 10% of the steps did to the score: the mean return of the last",
+             "100 episodes at 90% of the steps, and at the end (the run's score), averaged over the seeds.", "",
+             "| env | setting | seeds | median beta, first 90% of updates | beta at the end | updates in the last 10% with KL < d_targ / 1.5"
+             " | final run of updates with KL < d_targ / 1.5 | score at 90% of the steps | score at the end |",
+             "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for env in sorted({key[0] for key in series}):
         fig, ax = plt.subplots(figsize=(6, 3.4))
         for (e, variant, seed), rows in sorted(series.items()):
@@ -598,13 +602,16 @@ def beta_section(folder):
         plt.close(fig)
         for variant in sorted({key[1] for key in series if key[0] == env}):
             keys = [key for key in sorted(series) if key[:2] == (env, variant)]
-            runs, low_kl = [series[key] for key in keys], [targets[key] / 1.5 for key in keys]
-            cut = [int(0.9 * len(rows)) for rows in runs]
-            early = statistics.mean(statistics.median(r[1] for r in rows[:c]) for rows, c in zip(runs, cut))
-            end = statistics.mean(rows[-1][1] for rows in runs)
-            low = statistics.mean(statistics.mean(r[2] < kl for r in rows[c:]) for rows, c, kl in zip(runs, cut, low_kl))
-            streak = [next((i for i, r in enumerate(reversed(rows)) if r[2] >= kl), len(rows)) for rows, kl in zip(runs, low_kl)]
-            lines.append(f"| {env} | {variant} | {len(runs)} | {early:.3g} | {end:.3g} | {low:.0%} | {', '.join(map(str, streak))} |")
+            betas, low_kl = [series[key] for key in keys], [targets[key] / 1.5 for key in keys]
+            cut = [int(0.9 * len(rows)) for rows in betas]
+            early = statistics.mean(statistics.median(r[1] for r in rows[:c]) for rows, c in zip(betas, cut))
+            end = statistics.mean(rows[-1][1] for rows in betas)
+            low = statistics.mean(statistics.mean(r[2] < kl for r in rows[c:]) for rows, c, kl in zip(betas, cut, low_kl))
+            streak = [next((i for i, r in enumerate(reversed(rows)) if r[2] >= kl), len(rows)) for rows, kl in zip(betas, low_kl)]
+            before = statistics.mean(curve(runs[key].rows, [0.9 * int(runs[key].meta["global_step"])])[0] for key in keys)
+            after = statistics.mean(runs[key].score for key in keys)
+            lines.append(f"| {env} | {variant} | {len(keys)} | {early:.3g} | {end:.3g} | {low:.0%} | {', '.join(map(str, streak))}"
+                         f" | {fmt(before)} | {fmt(after)} |")
     lines += [""] + [f"![beta, {env}](curves/beta-{env}.png)" for env in sorted({key[0] for key in series})]
     return lines
 

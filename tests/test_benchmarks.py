@@ -373,10 +373,13 @@ def test_quick_start_promises_what_the_default_hopper_runs_did(tmp_path):
 
 
 def test_beta_section_reads_each_runs_kl_target_from_its_command(tmp_path):
-    """d_targ comes from the run's command (or the script's default), not from the variant's name; a fixed beta is left out."""
+    """d_targ comes from the run's command (or the script's default), not from the variant's name; a fixed beta is
+    left out. The score at 90% of the steps is the mean of the last 100 episodes finished by then."""
     def kl_run(variant, flags, kls):
-        header = [("command", f"python ppo_kl_penalty.py --env-id Hopper-v5 --seed 1 {flags}".strip()), ("global_step", 2048 * len(kls))]
-        write_csv(tmp_path / f"Hopper-v5__{variant}__seed1.csv", header, [(100, 1.0, 10)])
+        steps = 2048 * len(kls)  # 40,960: the 90% mark is step 36,864, when 184 of the 204 episodes have finished
+        episodes = [(200 * i, 10.0 if 200 * i <= 0.9 * steps else 0.0, 10) for i in range(1, 205)]
+        header = [("command", f"python ppo_kl_penalty.py --env-id Hopper-v5 --seed 1 {flags}".strip()), ("global_step", steps)]
+        write_csv(tmp_path / f"Hopper-v5__{variant}__seed1.csv", header, episodes)
         (tmp_path / "beta").mkdir(exist_ok=True)
         with open(tmp_path / "beta" / f"Hopper-v5__{variant}__seed1.csv", "w", newline="") as f:
             writer = csv.writer(f)
@@ -388,10 +391,12 @@ def test_beta_section_reads_each_runs_kl_target_from_its_command(tmp_path):
     kl_run("wide", "--kl-target 0.03", [0.015] * 20)  # above 0.01 / 1.5 but below 0.03 / 1.5: all 20 count
     kl_run("beta3", "--init-beta 3 --no-adaptive-beta", [0.001] * 20)
     rows = [line for line in report.beta_section(tmp_path) if line.startswith("| Hopper-v5")]
+    early, end = f"{statistics.median(0.5**i for i in range(18)):.3g}", f"{0.5**19:.3g}"
+    # At 90% of the steps the last 100 episodes all scored 10; at the end, the last 20 of them scored 0.
     assert rows == [
-        f"| Hopper-v5 | kl0.01 | 1 | {statistics.median(0.5**i for i in range(18)):.3g} | {0.5**19:.3g} | 100% | 3 |",
-        f"| Hopper-v5 | kl0.01-const-lr | 1 | {statistics.median(0.5**i for i in range(18)):.3g} | {0.5**19:.3g} | 50% | 0 |",
-        f"| Hopper-v5 | wide | 1 | {statistics.median(0.5**i for i in range(18)):.3g} | {0.5**19:.3g} | 100% | 20 |",
+        f"| Hopper-v5 | kl0.01 | 1 | {early} | {end} | 100% | 3 | 10.00 | 8.00 |",
+        f"| Hopper-v5 | kl0.01-const-lr | 1 | {early} | {end} | 50% | 0 | 10.00 | 8.00 |",
+        f"| Hopper-v5 | wide | 1 | {early} | {end} | 100% | 20 | 10.00 | 8.00 |",
     ]
 
 
