@@ -44,9 +44,14 @@ def machine():
     return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}"
 
 
+# The update's statistics that every script logs, kept per iteration beside a run's CSV (<suite>/updates/).
+UPDATE_STATS = ("entropy", "approx_kl", "clipfrac", "explained_variance", "value_loss")
+
+
 def read_run(run_dir):
-    """A finished run directory's checkpoint, its episodes (step, return, length), and, for a run of
-    ppo_kl_penalty.py, beta's range and its series: (step, beta, the update's mean KL) per iteration."""
+    """A finished run directory's checkpoint, its episodes (step, return, length), for a run of
+    ppo_kl_penalty.py beta's range and its series: (step, beta, the update's mean KL) per iteration,
+    and the UPDATE_STATS per iteration: (step, *stats), or None for a script that logs none (SB3)."""
     import torch
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -63,7 +68,12 @@ def read_run(run_dir):
         betas = [e.value for e in acc.Scalars("losses/beta")]
         early = betas[: int(0.9 * len(betas))] or betas
         beta = f"{min(betas):.3g}..{max(betas):.3g} (first 90% of updates: {min(early):.3g}..{max(early):.3g})"
-    return checkpoint, rows, beta, series
+    tags = acc.Tags()["scalars"]
+    updates = None
+    if all(f"losses/{name}" in tags for name in UPDATE_STATS):
+        columns = [acc.Scalars(f"losses/{name}") for name in UPDATE_STATS]
+        updates = [(events[0].step, *(e.value for e in events)) for events in zip(*columns)]
+    return checkpoint, rows, beta, series, updates
 
 
 def write_csv(path, header, rows):

@@ -30,7 +30,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import load_script, read_csv, replace_between, score  # noqa: E402
+from common import UPDATE_STATS, load_script, read_csv, replace_between, score  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 REFERENCE = ROOT / "benchmarks" / "reference_figures.csv"
@@ -398,6 +398,8 @@ def report(folder, reference=None, results=RESULTS):
         png = plot_env(folder, env, [r for r in runs if r.env_id == env], variants)
         lines.append(f"![{env}](curves/{png.name})")
     lines += beta_section(folder)
+    if kind == "mujoco" and len(suite_variants(suite_name(folder))) > 1:  # the suites that look for a cause: shortfalls, beta_collapse
+        lines += updates_section(folder, variants)
     lines += ["", "## Every run", "", *run_table(runs)]
     text = "\n".join(lines) + "\n"
     (folder / "report.md").write_text(text)
@@ -613,6 +615,39 @@ def beta_section(folder):
             lines.append(f"| {env} | {variant} | {len(keys)} | {early:.3g} | {end:.3g} | {low:.0%} | {', '.join(map(str, streak))}"
                          f" | {fmt(before)} | {fmt(after)} |")
     lines += [""] + [f"![beta, {env}](curves/beta-{env}.png)" for env in sorted({key[0] for key in series})]
+    return lines
+
+
+def updates_section(folder, variants):
+    """The update's statistics over training, per env and setting: each run's mean over each tenth of its
+    updates, averaged over the seeds, under the return at the end of each tenth. From <folder>/updates/,
+    which run.py writes for every run."""
+    runs = {(r.env_id, r.variant, r.seed): r for r in load_runs(folder)}
+    stats = {}
+    for path in sorted((Path(folder) / "updates").glob("*__*__seed*.csv")):
+        env_id, variant, seed = path.stem.split("__")
+        with open(path) as f:
+            rows = [[float(x) for x in row.values()] for row in csv.DictReader(f)]
+        if len(rows) >= 10 and (env_id, variant, int(seed.removeprefix("seed"))) in runs:
+            stats.setdefault((env_id, variant), []).append((runs[env_id, variant, int(seed.removeprefix("seed"))], rows))
+    if not stats:
+        return []
+    lines = ["", "## The updates over training", "",
+             "The return (the mean of the last 100 episodes) at the end of each tenth of the steps, and under it each",
+             "update's statistics as the script logs them (`losses/*`, see the README's Logged metrics) averaged over",
+             "that tenth of the updates; each the mean over the seeds (their number in brackets). An explained variance",
+             "below 0 means that the value function predicts the batch's returns worse than their mean does, so that the",
+             "advantages are mostly its error.", "",
+             "| env | setting | statistic | " + " | ".join(f"{10 * i}–{10 * i + 10}%" for i in range(10)) + " |", "|---" * 13 + "|"]  # fmt: skip
+    order = {v: i for i, v in enumerate(variants)}
+    for env, variant in sorted(stats, key=lambda key: (key[0], order.get(key[1], len(order)), key[1])):
+        pairs = stats[env, variant]
+        returns = [statistics.mean(curve(run.rows, [int(run.meta["global_step"]) * (i + 1) / 10])[0] for run, _ in pairs) for i in range(10)]
+        lines.append(f"| {env} | {variant} ({len(pairs)}) | return | " + " | ".join(fmt(x) for x in returns) + " |")
+        for j, name in enumerate(UPDATE_STATS, start=1):
+            tenths = [statistics.mean(statistics.mean(r[j] for r in rows[len(rows) * i // 10 : len(rows) * (i + 1) // 10]) for _, rows in pairs)
+                      for i in range(10)]  # fmt: skip
+            lines.append(f"| {env} | {variant} ({len(pairs)}) | {name} | " + " | ".join(f"{x:.3g}" for x in tenths) + " |")
     return lines
 
 

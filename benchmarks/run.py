@@ -33,7 +33,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import load_script, machine, read_run, score, versions, write_csv  # noqa: E402
+from common import UPDATE_STATS, load_script, machine, read_run, score, versions, write_csv  # noqa: E402
 
 # The paper's 7 MuJoCo tasks (§6.1 used gym's -v1; -v5 is today's version of each).
 MUJOCO = ["HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5", "InvertedPendulum-v5", "Reacher-v5", "Swimmer-v5", "Walker2d-v5"]
@@ -222,9 +222,14 @@ def read_attempts(job):
     return [line.rstrip("\n").split("\t") for line in path.read_text().splitlines() if line.strip()]
 
 
+def write_updates(path, updates):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(",".join(("global_step", *UPDATE_STATS)) + "\n" + "".join(",".join(f"{x:.6g}" for x in row) + "\n" for row in updates))
+
+
 def finish(job):
     """Turn a finished run directory into its CSV."""
-    checkpoint, rows, beta, series = read_run(job.run_dir)
+    checkpoint, rows, beta, series, updates = read_run(job.run_dir)
     attempts = read_attempts(job)
     commits = sorted({a[1] for a in attempts}) or ["unknown"]  # every attempt may have added steps
     wall = sum(float(a[2]) for a in attempts)
@@ -239,6 +244,8 @@ def finish(job):
         path = job.results_dir / "beta" / f"{job.name}.csv"
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("global_step,beta,kl\n" + "".join(f"{step},{b:.6g},{kl:.6g}\n" for step, b, kl in series))
+    if updates:  # the update's statistics per iteration, for the report's diagnostics: <suite>/updates/<run>.csv
+        write_updates(job.results_dir / "updates" / f"{job.name}.csv", updates)
     write_csv(job.csv, header, rows)  # last: the CSV's presence means that the run is finished
     return score(rows)
 
@@ -354,10 +361,10 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
         source = find_equivalent(job, results_root)
         if source is not None:
             job.csv.parent.mkdir(parents=True, exist_ok=True)
-            beta = source.parent / "beta" / source.name  # a KL run's beta series goes with it
-            if beta.exists():
-                (job.results_dir / "beta").mkdir(parents=True, exist_ok=True)
-                shutil.copyfile(beta, job.results_dir / "beta" / job.csv.name)
+            for series in ("beta", "updates"):  # a run's series go with it: beta (KL runs), the update's statistics
+                if (source.parent / series / source.name).exists():
+                    (job.results_dir / series).mkdir(parents=True, exist_ok=True)
+                    shutil.copyfile(source.parent / series / source.name, job.results_dir / series / job.csv.name)
             shutil.copyfile(source, job.csv)  # last, as in finish(): the CSV's presence means the run is finished
             print(f"{job.name}: the same run is finished in {_rel(source)}; copied", flush=True)
             done += 1

@@ -17,7 +17,7 @@ from conftest import ROOT
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import report  # noqa: E402
 import run  # noqa: E402
-from common import read_csv, write_csv  # noqa: E402
+from common import UPDATE_STATS, read_csv, write_csv  # noqa: E402
 
 # One iteration of ppo_continuous.py's default batch is 2048 steps; InvertedPendulum is the cheapest env.
 TINY_GRID = ["--envs", "InvertedPendulum", "--seeds", "1"]
@@ -103,6 +103,10 @@ def test_runner_finishes_skips_and_shares_identical_runs(tmp_path):
     steps = [step for step, _, _ in rows]
     assert len(rows) > 10 and steps == sorted(steps) and steps[-1] <= 4096
     assert all(length > 0 for _, _, length in rows)
+    updates = (out.parent / "updates" / out.name).read_text().splitlines()  # the update's statistics, one row per iteration
+    assert updates[0] == "global_step,entropy,approx_kl,clipfrac,explained_variance,value_loss"
+    assert [int(line.split(",")[0]) for line in updates[1:]] == [2048, 4096]
+    assert all(math.isfinite(float(x)) for line in updates[1:] for x in line.split(","))
     content = out.read_bytes()
 
     again = runner("mujoco", *TINY_GRID, "--total-timesteps", "4096", tmp_path=tmp_path)
@@ -115,6 +119,7 @@ def test_runner_finishes_skips_and_shares_identical_runs(tmp_path):
     shared = runner("table1", "--variants", "clip0.2", *TINY_GRID, "--total-timesteps", "4096", tmp_path=tmp_path)
     assert "copied" in shared.stdout
     assert (tmp_path / "results" / run.results_folder("table1", 4096) / "InvertedPendulum-v5__clip0.2__seed1.csv").read_bytes() == content
+    assert (tmp_path / "results" / run.results_folder("table1", 4096) / "updates" / out.name).read_text() == "\n".join(updates) + "\n"
     assert not (tmp_path / "runs" / run.results_folder("table1", 4096)).exists()
 
 
@@ -166,6 +171,8 @@ def test_runner_resumes_an_interrupted_run(tmp_path):
     beta = (csv_path.parent / "beta" / csv_path.name).read_text().splitlines()
     assert beta[0] == "global_step,beta,kl" and len(beta) - 1 == total // 2048, "beta after each of the run's updates"
     assert [int(line.split(",")[0]) for line in beta[1:]] == list(range(2048, total + 1, 2048))
+    updates = (csv_path.parent / "updates" / csv_path.name).read_text().splitlines()
+    assert [int(line.split(",")[0]) for line in updates[1:]] == list(range(2048, total + 1, 2048)), "one row per update, across the resume"
     steps = [step for step, _, _ in rows]
     assert steps == sorted(steps), "one curve, without a fold at the resume"
     attempts = [line.split("\t") for line in (run_dir / "attempts.txt").read_text().splitlines()]
@@ -183,9 +190,9 @@ def test_ray_backend_makes_the_same_results_as_the_local_one_and_skips_them_afte
     assert "done   InvertedPendulum-v5__kl0.01__seed1" in first.stdout and "1/1 runs finished" in first.stdout
     files = {p.relative_to(tmp_path / "ray" / "results") for p in (tmp_path / "ray" / "results").rglob("*.csv")}
     assert files == {p.relative_to(tmp_path / "local" / "results") for p in (tmp_path / "local" / "results").rglob("*.csv")}
-    for path in files:  # the same run, to the episode and to beta's every value: only when, and how long, differ
+    for path in files:  # the same run, to the episode and to every value of its series: only when, and how long, differ
         local, ray = (tmp_path / backend / "results" / path for backend in ("local", "ray"))
-        if path.parent.name == "beta":
+        if path.parent.name in ("beta", "updates"):
             assert local.read_text() == ray.read_text()
             continue
         (meta_l, rows_l), (meta_r, rows_r) = read_csv(local), read_csv(ray)
@@ -398,6 +405,23 @@ def test_beta_section_reads_each_runs_kl_target_from_its_command(tmp_path):
         f"| Hopper-v5 | kl0.01-const-lr | 1 | {early} | {end} | 50% | 0 | 10.00 | 8.00 |",
         f"| Hopper-v5 | wide | 1 | {early} | {end} | 100% | 20 | 10.00 | 8.00 |",
     ]
+
+
+def test_updates_section_averages_each_tenth_of_a_run_then_the_seeds(tmp_path):
+    (tmp_path / "updates").mkdir()
+    for seed, shift in ((1, 0.0), (2, 2.0)):  # 20 updates each: every statistic of update i is i + shift
+        fake_run(tmp_path, "Hopper-v5", "clip0.2", seed, 100.0 * seed)
+        rows = [[2048 * (i + 1)] + [i + shift] * len(UPDATE_STATS) for i in range(20)]
+        write = "\n".join(",".join(map(str, row)) for row in rows)
+        (tmp_path / "updates" / f"Hopper-v5__clip0.2__seed{seed}.csv").write_text(",".join(("global_step", *UPDATE_STATS)) + "\n" + write + "\n")
+    lines = report.updates_section(tmp_path, ["clip0.2"])
+    row = next(line for line in lines if line.startswith("| Hopper-v5 | clip0.2 (2) | explained_variance |"))
+    cells = [float(c) for c in row.strip("|").split("|")[3:]]
+    # tenth k holds updates 2k and 2k + 1: their mean is 2k + 0.5 for seed 1 and 2k + 2.5 for seed 2
+    assert cells == [2 * k + 1.5 for k in range(10)]
+    row = next(line for line in lines if line.startswith("| Hopper-v5 | clip0.2 (2) | return |"))
+    assert row.endswith("| 150.0 |"), "at the end, the mean over the seeds of their last 100 episodes: (100 + 200) / 2"
+    assert report.updates_section(tmp_path / "none", ["clip0.2"]) == []
 
 
 def test_reference_figures_have_a_source_each():
