@@ -223,6 +223,7 @@ def read_attempts(job):
 
 
 def write_updates(path, updates):
+    """<suite>/updates/<run>.csv: global_step and the UPDATE_STATS, one row per iteration."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(",".join(("global_step", *UPDATE_STATS)) + "\n" + "".join(",".join(f"{x:.6g}" for x in row) + "\n" for row in updates))
 
