@@ -556,12 +556,15 @@ def read_beta(folder):
 
 def kl_targets(runs):
     """{(env_id, variant, seed): d_targ} for the adaptive-KL runs among `runs`, from each run's command."""
-    default = load_script("ppo_kl_penalty.py").Args().kl_target
-    out = {}
+    out, default = {}, None
     for run in runs:
         words = run.meta.get("command", "").split()
         if "ppo_kl_penalty.py" in words and "--no-adaptive-beta" not in words:
-            out[run.env_id, run.variant, run.seed] = float(words[words.index("--kl-target") + 1]) if "--kl-target" in words else default
+            if "--kl-target" in words:
+                out[run.env_id, run.variant, run.seed] = float(words[words.index("--kl-target") + 1])
+            else:  # the script's own default, read from it
+                default = default or load_script("ppo_kl_penalty.py").Args().kl_target
+                out[run.env_id, run.variant, run.seed] = default
     return out
 
 
