@@ -68,13 +68,19 @@ SCORE_RULE = ("A run's score is the mean return of its last 100 episodes; a cell
               " with the number of seeds in brackets. Our MuJoCo tasks are -v5 (the paper used gym's -v1, CleanRL -v4).")
 
 
-def load_runs(folder):
-    """Every <env>__<variant>__seed<N>.csv in a suite folder."""
-    runs = []
+def run_files(folder):
+    """(env_id, variant, seed, path) for every <env>__<variant>__seed<N>.csv in a folder."""
     for path in sorted(Path(folder).glob("*__*__seed*.csv")):
         env_id, variant, seed = path.stem.split("__")
+        yield env_id, variant, int(seed.removeprefix("seed")), path
+
+
+def load_runs(folder):
+    """Every run of a suite folder."""
+    runs = []
+    for env_id, variant, seed, path in run_files(folder):
         meta, rows = read_csv(path)
-        runs.append(Run(env_id, variant, int(seed.removeprefix("seed")), rows, meta))
+        runs.append(Run(env_id, variant, seed, rows, meta))
     return runs
 
 
@@ -547,10 +553,9 @@ def plot_env(folder, env, runs, variants):
 def read_beta(folder):
     """{(env_id, variant, seed): [(step, beta, kl), ...]} from <folder>/beta/, which run.py writes for KL runs."""
     out = {}
-    for path in sorted((Path(folder) / "beta").glob("*__*__seed*.csv")):
-        env_id, variant, seed = path.stem.split("__")
+    for env_id, variant, seed, path in run_files(Path(folder) / "beta"):
         with open(path) as f:
-            out[env_id, variant, int(seed.removeprefix("seed"))] = [(int(r["global_step"]), float(r["beta"]), float(r["kl"])) for r in csv.DictReader(f)]
+            out[env_id, variant, seed] = [(int(r["global_step"]), float(r["beta"]), float(r["kl"])) for r in csv.DictReader(f)]
     return out
 
 
@@ -627,12 +632,11 @@ def updates_section(folder, variants):
     which run.py writes for every run."""
     runs = {(r.env_id, r.variant, r.seed): r for r in load_runs(folder)}
     stats = {}
-    for path in sorted((Path(folder) / "updates").glob("*__*__seed*.csv")):
-        env_id, variant, seed = path.stem.split("__")
+    for env_id, variant, seed, path in run_files(Path(folder) / "updates"):
         with open(path) as f:
             rows = [[float(x) for x in row.values()] for row in csv.DictReader(f)]
-        if len(rows) >= 10 and (env_id, variant, int(seed.removeprefix("seed"))) in runs:
-            stats.setdefault((env_id, variant), []).append((runs[env_id, variant, int(seed.removeprefix("seed"))], rows))
+        if len(rows) >= 10 and (env_id, variant, seed) in runs:
+            stats.setdefault((env_id, variant), []).append((runs[env_id, variant, seed], rows))
     if not stats:
         return []
     lines = ["", "## The updates over training", "",

@@ -222,10 +222,11 @@ def read_attempts(job):
     return [line.rstrip("\n").split("\t") for line in path.read_text().splitlines() if line.strip()]
 
 
-def write_updates(path, updates):
-    """<suite>/updates/<run>.csv: global_step and the UPDATE_STATS, one row per iteration."""
+def write_series(path, columns, rows):
+    """A per-iteration series as a CSV: global_step (exact) and then the columns (6 significant digits)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(",".join(("global_step", *UPDATE_STATS)) + "\n" + "".join(",".join(f"{x:.6g}" for x in row) + "\n" for row in updates))
+    lines = [",".join(("global_step", *columns))] + [",".join((f"{step:.0f}", *(f"{x:.6g}" for x in rest))) for step, *rest in rows]
+    path.write_text("\n".join(lines) + "\n")
 
 
 def finish(job):
@@ -241,12 +242,10 @@ def finish(job):
         ("versions", versions(("torch", "numpy", "gymnasium", "mujoco", "ale-py", *(["stable-baselines3"] if "sb3" in job.script else [])))),
         ("wall_time_s", f"{wall:.0f}"), ("attempts", len(attempts)), *([("beta_range", beta)] if beta else []),
     ]  # fmt: skip
-    if series:  # beta after each update, for the report's plot of it: <suite>/beta/<run>.csv
-        path = job.results_dir / "beta" / f"{job.name}.csv"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text("global_step,beta,kl\n" + "".join(f"{step},{b:.6g},{kl:.6g}\n" for step, b, kl in series))
-    if updates:  # the update's statistics per iteration, for the report's diagnostics: <suite>/updates/<run>.csv
-        write_updates(job.results_dir / "updates" / f"{job.name}.csv", updates)
+    if series:  # beta after each update, for the report's plot of it
+        write_series(job.results_dir / "beta" / f"{job.name}.csv", ("beta", "kl"), series)
+    if updates:  # the update's statistics per iteration, for the report's diagnostics
+        write_series(job.results_dir / "updates" / f"{job.name}.csv", UPDATE_STATS, updates)
     write_csv(job.csv, header, rows)  # last: the CSV's presence means that the run is finished
     return score(rows)
 
