@@ -8,7 +8,8 @@ clip range (Table 5). Where the paper is silent we follow "The 37 Implementation
     python ppo_atari.py --compile                        # the same algorithm, compiled by torch.compile
     python ppo_atari.py --help                           # every flag, with its default
 
-On a 2-core CPU, 1M steps take a little over an hour and the paper's 10M most of a day: use a GPU for those.
+How long a run takes and what it scores, beside the paper's figures, is measured in README.md's Results.
+The paper's 10M steps are a job for a GPU (auto picks CUDA when there is one).
 """
 
 from __future__ import annotations

@@ -8,8 +8,7 @@ their 13) and "continuous detail N" (of their 9 for continuous actions).
     python ppo_continuous.py --compile                # the same algorithm, compiled by torch.compile
     python ppo_continuous.py --help                   # every flag, with its default
 
-On a 2-core laptop CPU the default run takes about a quarter of an hour and ends with a mean
-return of roughly 2,000-2,500 over its last 100 episodes (the paper's Figure 3: about 2,200).
+How long a run takes and what it scores, beside the paper's figures, is measured in README.md's Results.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ cited as "core detail N" (of their 13) and "continuous detail N" (of their 9 for
     python ppo_kl_penalty.py --init-beta 3 --no-adaptive-beta    # fixed KL, beta = 3
     python ppo_kl_penalty.py --init-beta 0 --no-adaptive-beta    # no clipping or penalty
 
-On a 2-core laptop CPU the default run (Hopper-v5, 1M steps) takes about a quarter of an hour.
+How long a run takes and what it scores, beside the paper's Table 1, is measured in README.md's Results.
 """
 
 from __future__ import annotations
