@@ -65,7 +65,8 @@ def env_base(env_id):
 
 
 SCORE_RULE = ("A run's score is the mean return of its last 100 episodes; a cell is the mean ± sample std over seeds,"
-              " with the number of seeds in brackets. Our MuJoCo tasks are -v5 (the paper used gym's -v1, CleanRL -v4).")
+              " with the number of seeds in brackets. Our MuJoCo tasks are gymnasium's -v5 where the env column"
+              " does not name another version (the paper used gym's -v1, CleanRL -v4).")
 
 
 def run_files(folder):
