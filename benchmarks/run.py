@@ -72,13 +72,13 @@ SUITES = {
     # Does the collapse of beta at the end of the adaptive-KL runs matter? The same row with the lr held constant.
     "beta_collapse": Suite({"kl0.01": ("ppo_kl_penalty.py", []), "kl0.01-const-lr": ("ppo_kl_penalty.py", ["--no-anneal-lr"])},
                            ["Hopper-v5"], [1, 2, 3], 1_000_000, "adaptive KL d_targ 0.01, with and without lr annealing"),
-    # Why InvertedDoublePendulum and Swimmer fall short of the paper: three hypotheses against the default. The env's
-    # version (the default on IDP-v4, closer to the paper's -v1), lr annealing, and the discount.
+    # Why InvertedDoublePendulum-v5 and Swimmer fall short of the paper: three hypotheses against the default. The env's
+    # version (the default on IDP-v4, the paper's -v1 task), lr annealing (on both), and the discount (on Swimmer).
     "shortfalls": Suite({"clip0.2": ("ppo_continuous.py", []), "const-lr": ("ppo_continuous.py", ["--no-anneal-lr"]),
                          "gamma0.999": ("ppo_continuous.py", ["--gamma", "0.999"])},
                         ["InvertedDoublePendulum-v5", "Swimmer-v5", "InvertedDoublePendulum-v4"], [1, 2, 3], 1_000_000,
-                        "ppo_continuous.py defaults (also on IDP-v4), without lr annealing, and with gamma 0.999",
-                        only={v: (["InvertedDoublePendulum-v5", "Swimmer-v5"], [1, 2, 3]) for v in ("const-lr", "gamma0.999")}),
+                        "ppo_continuous.py defaults (also on IDP-v4), without lr annealing, and with gamma 0.999 on Swimmer",
+                        only={"const-lr": (["InvertedDoublePendulum-v5", "Swimmer-v5"], [1, 2, 3]), "gamma0.999": (["Swimmer-v5"], [1, 2, 3])}),
     # The paper trained Atari for 10M agent steps (40M frames); here 1M, a tenth. The peer at the same budget is
     # SB3's PPO with the RL Zoo's Atari hyperparameters, on two of the games with one seed.
     "atari": Suite({"ppo": ("ppo_atari.py", ["--compile"]), "sb3": ("benchmarks/sb3_atari.py", [])},
