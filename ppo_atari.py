@@ -46,7 +46,7 @@ class Args:
     learning_rate: float = 2.5e-4  # Adam step size at the start, 2.5e-4 x alpha (paper: 2.5e-4)
     num_envs: int = 8  # number of parallel actors N (paper: 8)
     num_steps: int = 128  # steps per actor in each rollout, the horizon T (paper: 128)
-    anneal_lr: bool = True  # anneal the learning rate with alpha, linearly to 0 (paper §6.4; core detail 4)
+    anneal_lr: bool = True  # anneal the learning rate with alpha, linearly to 0 (paper Table 5; core detail 4)
     anneal_clip: bool = True  # anneal the clip range with alpha, 0.1 x alpha (paper Table 5; CleanRL keeps it fixed)
     gamma: float = 0.99  # discount factor gamma (paper: 0.99)
     gae_lambda: float = 0.95  # GAE lambda (paper: 0.95)
@@ -124,7 +124,7 @@ def game_name(env_id):
 
 
 def make_envs(args, num_envs=None, training=True):
-    """ale-py's vector env: C++ emulators on their own threads, with atari details 1-7 built in."""
+    """ale-py's vector env: C++ emulators on their own threads, with atari details 1-5 and 7 built in (6 is in train())."""
     import ale_py
     return ale_py.AtariVectorEnv(
         game_name(args.env_id), num_envs or args.num_envs, num_threads=min(num_envs or args.num_envs, os.cpu_count() or 1),
@@ -173,7 +173,8 @@ def layer_init(layer, std=math.sqrt(2), bias_const=0.0):
 class Agent(nn.Module):
     def __init__(self, num_actions):
         super().__init__()
-        # Atari detail 8: the Nature-DQN CNN, shared by policy and value (§6.4); output gains 0.01 and 1 (core detail 2).
+        # Atari detail 8: the Nature-DQN CNN of baselines' code (§6.4 cites [Mni+16]'s network), shared by policy and value;
+        # output gains 0.01 and 1 (core detail 2).
         self.network = nn.Sequential(
             layer_init(nn.Conv2d(4, 32, 8, stride=4)), nn.ReLU(),
             layer_init(nn.Conv2d(32, 64, 4, stride=2)), nn.ReLU(),
@@ -228,7 +229,7 @@ def train(args):
         if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch
             mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
         pg_loss = clipped_surrogate_loss(ratio, mb_advantages, clip_coef)
-        v_loss = value_loss(newvalue, mb_values, mb_returns, args.clip_coef, args.clip_vloss)
+        v_loss = value_loss(newvalue, mb_values, mb_returns, args.clip_coef, args.clip_vloss)  # the fixed clip range, never annealed
         entropy = entropy.mean()
         loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # core detail 10, signs flipped to minimize
         optimizer.zero_grad()
@@ -260,7 +261,7 @@ def train(args):
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items()))
     recent_returns, stop = deque(maxlen=100), []
     start_time, start_step, last_print, diverged = time.time(), global_step, 0.0, False
-    # Ctrl-C and SIGTERM (the benchmark runner's stop) only set a flag, which the loop checks.
+    # Ctrl-C and SIGTERM (say, a job scheduler's stop) only set a flag, which the loop checks.
     previous_handlers = {sig: signal.signal(sig, lambda signum, frame: stop.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)}
 
     # ALGORITHM 1: for iteration = 1, 2, ...

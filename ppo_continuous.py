@@ -49,7 +49,7 @@ class Args:
     update_epochs: int = 10  # epochs K over each rollout (paper: 10)
     norm_adv: bool = True  # normalize advantages per minibatch (core detail 7)
     clip_coef: float = 0.2  # clip range epsilon of L^CLIP (paper: 0.2)
-    clip_vloss: bool = True  # clip the value loss around the old values (core detail 9)
+    clip_vloss: bool = True  # clip the value loss around the old values with clip_coef (core detail 9; not in eq. 9)
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
     vf_coef: float = 0.25  # c1 of eq. 9, on (V - V_targ)^2: CleanRL's 0.5 on half of it (with separate networks, it acts via the grad clip)
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
@@ -225,7 +225,7 @@ def train(args):
         if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch
             mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
         pg_loss = clipped_surrogate_loss(ratio, mb_advantages, clip_coef)
-        v_loss = value_loss(newvalue, mb_values, mb_returns, args.clip_coef, args.clip_vloss)
+        v_loss = value_loss(newvalue, mb_values, mb_returns, args.clip_coef, args.clip_vloss)  # the fixed clip range, never annealed
         entropy = entropy.mean()
         loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # core detail 10, signs flipped to minimize
         optimizer.zero_grad()
@@ -254,7 +254,7 @@ def train(args):
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items()))
     recent_returns, stop = deque(maxlen=100), []
     start_time, start_step, last_print, diverged = time.time(), global_step, 0.0, False
-    # Ctrl-C and SIGTERM (the benchmark runner's stop) only set a flag, which the loop checks.
+    # Ctrl-C and SIGTERM (say, a job scheduler's stop) only set a flag, which the loop checks.
     previous_handlers = {sig: signal.signal(sig, lambda signum, frame: stop.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)}
 
     # ALGORITHM 1: for iteration = 1, 2, ...
@@ -420,10 +420,13 @@ def check_args(args):
         raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {args.run_dir}/checkpoint.pt, or pick a new directory")
     if args.resume is not None or args.eval_checkpoint is not None:
         args = resumed_args(load_checkpoint(args.resume or args.eval_checkpoint), args)
-    import ale_py
     import gymnasium as gym
-    gym.register_envs(ale_py)  # the Atari ids too, so that a game gets the hint below
-    ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # and no banner
+    try:  # where ale-py is installed, register the Atari ids too, so that a game gets the hint below
+        import ale_py
+        gym.register_envs(ale_py)
+        ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # and no banner
+    except ImportError:
+        pass
     try:
         env = gym.make(args.env_id)
     except gym.error.Error as e:

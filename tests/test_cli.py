@@ -227,6 +227,17 @@ def test_atari_id_points_to_the_atari_script(script, tmp_path):
     assert proc.returncode == 2 and len(lines) == 1 and "Use ppo_atari.py" in lines[0], proc.stderr
 
 
+@pytest.mark.parametrize("script", [s for s in SCRIPTS if s != "ppo_atari.py"])
+def test_mujoco_scripts_check_their_input_without_ale_py(script, tmp_path):
+    # A MuJoCo script copied into a project without ale-py still gives its one-line errors (sys.modules[name] = None
+    # makes `import name` fail as if the package were not installed).
+    code = (f"import runpy, sys; sys.modules['ale_py'] = None; sys.argv = [{script!r}, '--env-id', 'NoSuchEnv-v0'];"
+            f" runpy.run_path({str(ROOT / script)!r}, run_name='__main__')")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "unknown env id" in lines[0], proc.stderr
+
+
 def test_divergence_stops_with_one_line_and_keeps_the_last_finite_checkpoint(script, tmp_path, tiny_run):
     run_dir = tmp_path / "run"
     shutil.copytree(tiny_run(script)[0], run_dir)
