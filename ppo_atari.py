@@ -296,7 +296,7 @@ def train(args):
                     writer.add_scalar("charts/episodic_return", episode_return[i], global_step)
                     writer.add_scalar("charts/episodic_length", episode_length[i], global_step)
                     episode_return[i], episode_length[i] = 0.0, 0
-                    if i == 0:  # the first env's game is over: film games 0, 1, 8, 27, ... (replayed: see write_video)
+                    if i == 0:  # the first env's game is over: film the cubes, games 0, 1, 8, 27, ... (replayed: see write_video)
                         if args.capture_video and games_of_env0 == round(games_of_env0 ** (1 / 3)) ** 3:
                             write_video(args.env_id, video_reset_frames, video_actions, f"{run_dir}/videos/step-{global_step}-game-{games_of_env0}.mp4")
                         games_of_env0, video_actions, video_reset_frames = games_of_env0 + 1, [], frame_numbers[0]

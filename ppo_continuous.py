@@ -38,10 +38,10 @@ class Args:
     capture_video: bool = False  # record videos of the first environment (during training) or of every evaluation episode
     # Algorithm: defaults are the paper's MuJoCo settings (Table 3)
     env_id: str = "Hopper-v5"  # the id of a gymnasium environment with a Box action space
-    total_timesteps: int = 1_000_000  # total environment steps to train for (paper: 1M)
+    total_timesteps: int = 1_000_000  # total agent steps over all envs (paper: 1M)
     learning_rate: float = 3e-4  # Adam step size (paper: 3e-4)
-    num_envs: int = 1  # number of parallel environments N (paper: 1 actor for MuJoCo)
-    num_steps: int = 2048  # steps per environment in each rollout, the horizon T (paper: 2048)
+    num_envs: int = 1  # number of parallel actors N (paper: 1)
+    num_steps: int = 2048  # steps per actor in each rollout, the horizon T (paper: 2048)
     anneal_lr: bool = True  # anneal the learning rate linearly to 0 (core detail 4)
     gamma: float = 0.99  # discount factor gamma (paper: 0.99)
     gae_lambda: float = 0.95  # GAE lambda (paper: 0.95)
@@ -49,9 +49,9 @@ class Args:
     update_epochs: int = 10  # epochs K over each rollout (paper: 10)
     norm_adv: bool = True  # normalize advantages per minibatch (core detail 7)
     clip_coef: float = 0.2  # clip range epsilon of L^CLIP (paper: 0.2)
-    clip_vloss: bool = True  # clip the value loss around the old values with clip_coef (core detail 9; not in eq. 9)
+    clip_vloss: bool = True  # clip the value loss around the old values with the fixed clip_coef (core detail 9; not in eq. 9)
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
-    vf_coef: float = 0.25  # c1 of eq. 9, on (V - V_targ)^2: CleanRL's 0.5 on half of it (with separate networks, it acts via the grad clip)
+    vf_coef: float = 0.25  # c1 of eq. 9, on the squared error (V - V_targ)^2 (paper: none; with separate networks it acts only via the grad clip; CleanRL's 0.5 on half of it)
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
     norm_obs: bool = True  # normalize observations with running statistics (continuous details 6-7)
@@ -109,27 +109,6 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
     return torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
 
 
-class RunningMeanStd(nn.Module):
-    """Running mean and variance of numpy batches [B, *shape] (Chan et al.'s parallel algorithm), kept by
-    the agent, not an env wrapper: a checkpoint holds them, and evaluation sees the inputs of training."""
-
-    def __init__(self, shape=(), epsilon=1e-4):
-        super().__init__()
-        self.mean, self.var, self.count = np.zeros(shape), np.ones(shape), epsilon
-
-    def update(self, x):
-        batch_mean, batch_var, batch_count = x.mean(0), x.var(0), x.shape[0]
-        delta, total = batch_mean - self.mean, self.count + batch_count
-        self.var = (self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total
-        self.mean, self.count = self.mean + delta * batch_count / total, total
-
-    def get_extra_state(self):  # nn.Module saves and loads this with the agent's state_dict
-        return {"mean": torch.tensor(self.mean), "var": torch.tensor(self.var), "count": self.count}
-
-    def set_extra_state(self, state):
-        self.mean, self.var, self.count = state["mean"].numpy(), state["var"].numpy(), float(state["count"])
-
-
 # ENVIRONMENT
 def make_env(env_id, capture_video=False, video_dir=None, name_prefix="rl-video", episode_trigger=None):
     import gymnasium as gym
@@ -149,6 +128,27 @@ def layer_init(layer, std=math.sqrt(2), bias_const=0.0):
     torch.nn.init.orthogonal_(layer.weight, std)
     torch.nn.init.constant_(layer.bias, bias_const)
     return layer
+
+
+class RunningMeanStd(nn.Module):
+    """Running mean and variance of numpy batches [B, *shape] (Chan et al.'s parallel algorithm), kept by
+    the agent, not an env wrapper: a checkpoint holds them, and evaluation sees the inputs of training."""
+
+    def __init__(self, shape=(), epsilon=1e-4):
+        super().__init__()
+        self.mean, self.var, self.count = np.zeros(shape), np.ones(shape), epsilon
+
+    def update(self, x):
+        batch_mean, batch_var, batch_count = x.mean(0), x.var(0), x.shape[0]
+        delta, total = batch_mean - self.mean, self.count + batch_count
+        self.var = (self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total
+        self.mean, self.count = self.mean + delta * batch_count / total, total
+
+    def get_extra_state(self):  # nn.Module saves and loads this with the agent's state_dict
+        return {"mean": torch.tensor(self.mean), "var": torch.tensor(self.var), "count": self.count}
+
+    def set_extra_state(self, state):
+        self.mean, self.var, self.count = state["mean"].numpy(), state["var"].numpy(), float(state["count"])
 
 
 class Agent(nn.Module):
@@ -200,9 +200,9 @@ def train(args):
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
     torch.set_num_threads(args.torch_threads)
 
+    video_prefix = f"from-step-{checkpoint['global_step'] if checkpoint else 0}"  # a resumed run's videos overwrite none
     # Core detail 1: N envs stepped together. SAME_STEP autoreset: the step that ends an episode returns the
     # next one's first observation and the final one in infos["final_obs"] (the default stores a fake step).
-    video_prefix = f"from-step-{checkpoint['global_step'] if checkpoint else 0}"  # a resumed run's videos overwrite none
     envs = gym.vector.SyncVectorEnv([lambda i=i: make_env(args.env_id, args.capture_video and i == 0, f"{run_dir}/videos", video_prefix) for i in range(N)],
                                     autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)  # fmt: skip
     obs_dim, act_dim = envs.single_observation_space.shape[0], envs.single_action_space.shape[0]
