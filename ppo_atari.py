@@ -8,7 +8,6 @@ clip range (Table 5). Where the paper is silent we follow "The 37 Implementation
     python ppo_atari.py --compile                        # the same algorithm, compiled by torch.compile
     python ppo_atari.py --help                           # every flag, with its default
 
-How long a run takes and what it scores, beside the paper's figures, is measured in README.md's Results.
 The paper's 10M steps are a job for a GPU (auto picks CUDA when there is one).
 """
 
@@ -173,8 +172,7 @@ def layer_init(layer, std=math.sqrt(2), bias_const=0.0):
 class Agent(nn.Module):
     def __init__(self, num_actions):
         super().__init__()
-        # Atari detail 8: the Nature-DQN CNN of baselines' code (§6.4 cites [Mni+16]'s network), shared by policy and value;
-        # output gains 0.01 and 1 (core detail 2).
+        # Atari detail 8: baselines' Nature-DQN CNN (§6.4 cites [Mni+16]'s), shared by policy and value; gains 0.01, 1 (core detail 2).
         self.network = nn.Sequential(
             layer_init(nn.Conv2d(4, 32, 8, stride=4)), nn.ReLU(),
             layer_init(nn.Conv2d(32, 64, 4, stride=2)), nn.ReLU(),

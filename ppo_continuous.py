@@ -7,8 +7,6 @@ their 13) and "continuous detail N" (of their 9 for continuous actions).
     python ppo_continuous.py                          # Hopper-v5, 1M steps
     python ppo_continuous.py --compile                # the same algorithm, compiled by torch.compile
     python ppo_continuous.py --help                   # every flag, with its default
-
-How long a run takes and what it scores, beside the paper's figures, is measured in README.md's Results.
 """
 
 from __future__ import annotations

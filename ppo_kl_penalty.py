@@ -9,8 +9,6 @@ cited as "core detail N" (of their 13) and "continuous detail N" (of their 9 for
     python ppo_kl_penalty.py --kl-target 0.003                   # adaptive KL, d_targ = 0.003
     python ppo_kl_penalty.py --init-beta 3 --no-adaptive-beta    # fixed KL, beta = 3
     python ppo_kl_penalty.py --init-beta 0 --no-adaptive-beta    # no clipping or penalty
-
-How long a run takes and what it scores, beside the paper's Table 1, is measured in README.md's Results.
 """
 
 from __future__ import annotations
