@@ -499,7 +499,7 @@ def update_readme(path, block, start=README_START, end=README_END):
 
 def suite_folders(results=RESULTS):
     """The folders with run CSVs: the mujoco suites first, then table1, then atari."""
-    folders = [p for p in Path(results).iterdir() if p.is_dir() and any(p.glob("*__*__seed*.csv"))]
+    folders = [p for p in Path(results).iterdir() if p.is_dir() and any(run_files(p))]
     return sorted(folders, key=lambda p: (list(COLUMNS).index(suite_kind(p)), p.name))
 
 
