@@ -232,8 +232,9 @@ def train(args):
             nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
         optimizer.step()
         # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[old, new] (joschu.net/blog/kl-approx.html).
-        clipfrac = ((ratio - 1.0).abs() > clip_coef).float().mean()
-        return torch.stack([pg_loss, v_loss, entropy, (-logratio).mean(), ((ratio - 1) - logratio).mean(), clipfrac, loss]).detach()
+        stats = dict(policy_loss=pg_loss, value_loss=v_loss, entropy=entropy, old_approx_kl=(-logratio).mean(),
+                     approx_kl=((ratio - 1) - logratio).mean(), clipfrac=((ratio - 1.0).abs() > clip_coef).float().mean(), loss=loss)
+        return {name: stat.detach() for name, stat in stats.items()}
 
     policy = agent.get_action_and_value
     if args.compile:
@@ -298,16 +299,16 @@ def train(args):
 
         # UPDATE: K epochs of minibatch gradient descent on the flattened batch.
         b_obs, b_actions, b_logprobs = obs.reshape(-1, obs_dim), actions.reshape(-1, act_dim), logprobs.reshape(-1)
-        b_advantages, b_returns, b_values, stats = advantages.reshape(-1), returns.reshape(-1), values.reshape(-1), []
+        b_advantages, b_returns, b_values, update_stats = advantages.reshape(-1), returns.reshape(-1), values.reshape(-1), []
         for epoch in range(args.update_epochs):
             b_inds = torch.randperm(batch_size, device=device)  # core detail 6: a new shuffle each epoch
             for start in range(0, batch_size, args.minibatch_size):
                 mb_inds = b_inds[start : start + args.minibatch_size]
-                stats.append(update(b_obs[mb_inds], b_actions[mb_inds], b_logprobs[mb_inds], b_advantages[mb_inds],
-                                    b_returns[mb_inds], b_values[mb_inds], clip_coef))  # fmt: skip
+                update_stats.append(update(b_obs[mb_inds], b_actions[mb_inds], b_logprobs[mb_inds], b_advantages[mb_inds],
+                                           b_returns[mb_inds], b_values[mb_inds], clip_coef))  # fmt: skip
 
         # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
-        losses = dict(zip(("policy_loss", "value_loss", "entropy", "old_approx_kl", "approx_kl", "clipfrac", "loss"), torch.stack(stats).mean(0).tolist()))
+        losses = {name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]}
         losses["explained_variance"] = (1 - (b_returns - b_values).var() / b_returns.var()).item()
         sps = int((global_step - start_step) / (time.time() - start_time))
         writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"].item(), global_step)
