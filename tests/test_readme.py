@@ -37,6 +37,11 @@ def test_every_detail_links_to_a_line_that_cites_it():
         )
 
 
+def test_every_line_link_says_the_line_it_goes_to():
+    links = re.findall(r"\[(ppo_\w+\.py) L(\d+)\]\((ppo_\w+\.py)#L(\d+)\)", README)
+    assert links and [(script, line) for script, line, _, _ in links] == [(script, line) for _, _, script, line in links]
+
+
 def test_every_flag_the_readme_names_exists():
     flags = {"--" + f.name.replace("_", "-") for s in SCRIPTS for f in dataclasses.fields(load_script(s).Args)}
     flags |= {"--no-" + f[2:] for f in flags} | {"--help"}
