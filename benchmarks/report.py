@@ -288,7 +288,7 @@ def tables(folder, runs, reference, results, level="##"):
             ours = norm.get(v)
             n = sum(r.variant == v for r in runs)
             missing = "not run" if not n else f"not on every env yet ({n} run{'s' if n > 1 else ''})"
-            lines.append(f"| {v} | {ours[0]:.2f} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | {missing} | 0 | {paper[0]:.2f} |")
+            lines.append(f"| {v} | {ours[0]:.2f} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | {missing} | – | {paper[0]:.2f} |")
         text = verdict(norm, suite_variants("table1"))
         ran = sum(v in norm for v in suite_variants("table1"))
         lines += ["", text or f"The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping) waits for all 11 rows: {ran} are in."]
@@ -439,9 +439,9 @@ def readme_block(results=RESULTS, reference=None, full=False):
         elif folder.name in COLUMNS:  # the short summary: each suite at its own budget, one table each
             kind = suite_kind(folder)
             table = tables(folder, runs, reference, results, level="####")
-            if kind == "table1":  # just the normalized score, the paper's Table 1
+            if kind == "table1":  # just the normalized score, the paper's Table 1, and the verdict on its order
                 table = table[table.index("| setting | ours: normalized score | runs | paper, Table 1 |"):]
-                table = table[: table.index("")]
+                table = table[: table.index("") + 2]
             lines += ["", f"**{heading}** ([report]({rel}/report.md))", "", *table]
     return "\n".join(lines + ["", README_END])
 

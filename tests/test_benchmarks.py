@@ -273,7 +273,7 @@ def test_report_normalizes_as_the_paper_does(tmp_path):
     text = report.report(folder, results=results)
     assert f"| clip0.2 | {clip:.2f} | 3 | 0.82 |" in text
     assert f"| no-clip | {noclip:.2f} | 2 | -0.39 |" in text
-    assert "| kl0.01 | not run | 0 | 0.74 |" in text
+    assert "| kl0.01 | not run | – | 0.74 |" in text
     assert "15.00 ± 7.07 (2)" in text  # A, clip0.2: mean and sample std of 10 and 20
     assert "Seeds: 1, 2; 5 runs." in text and "abc1234" in text and "test machine" in text
     assert (folder / "report.md").read_text() == text
@@ -332,6 +332,7 @@ def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds
     else:  # kl0.03 (1.20 on the scale where the best, itself, is 1) beats clip 0.2 (100 / 120)
         assert "clip 0.2 (0.83) is not the best row: kl0.03 is (1.00)" in text and "adaptive KL kl0.03 (1.00) is not below clip 0.2 (0.83)" in text
     assert "| clip0.2 | " + f"{100 / max(100.0, kl003_score):.2f} (1) | abc1234 |" in text, "the per-env breakdown, with its commits"
+    assert f"**The paper's order {'holds' if holds else 'does not hold'} here:**" in report.readme_block(results=results), "README too"
     (folder / "A-v0__beta10__seed1.csv").unlink()
     assert "waits for all 11 rows: 10 are in" in report.report(folder, results=results)
 
