@@ -34,31 +34,31 @@ class Args:
     seed: int = 1  # seed of torch and of the environments
     device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto is cuda when there is one)
     compile: bool = False  # apply torch.compile to the policy step and the minibatch update (a slower start, a faster run)
-    torch_threads: int = 2  # torch CPU threads
-    run_dir: str | None = None  # where TensorBoard logs and the checkpoint go (default: runs/{env_id}__{exp_name}__{seed}__{time})
+    torch_threads: int = 2  # torch CPU threads (the CNN's convolutions use a second thread; the MLP scripts use 1)
+    run_dir: str | None = None  # where TensorBoard logs and the checkpoint go (None: runs/{env_id}__{exp_name}__{seed}__{time})
     capture_video: bool = False  # film games 0, 1, 8, 27, ... of the first env in training, and every evaluation game, in colour
-    # Algorithm: defaults are the paper's Atari settings (Table 5)
+    # Algorithm: the paper's Atari settings (Table 5) where it gives one, else the implementation detail cited
     env_id: str = "BreakoutNoFrameskip-v4"  # an Atari game: a gymnasium ALE id (BreakoutNoFrameskip-v4, ALE/Breakout-v5) or a name (Breakout)
-    total_timesteps: int = 10_000_000  # total agent steps over all envs (paper: 10M steps = 40M frames)
+    total_timesteps: int = 10_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 10M steps = 40M frames)
     max_episode_frames: int = 108_000  # truncate a game after this many frames of play (30 minutes at 60 Hz)
     fire_on_life_loss: bool = False  # also press FIRE after a lost life, as baselines' wrappers did (ale-py: only at a game's start)
-    learning_rate: float = 2.5e-4  # Adam step size at the start, 2.5e-4 x alpha (paper: 2.5e-4)
+    learning_rate: float = 2.5e-4  # Adam step size at the start (paper: 2.5e-4 x alpha)
     num_envs: int = 8  # number of parallel actors N (paper: 8)
     num_steps: int = 128  # steps per actor in each rollout, the horizon T (paper: 128)
     anneal_lr: bool = True  # anneal the learning rate with alpha, linearly to 0 (paper Table 5; core detail 4)
     anneal_clip: bool = True  # anneal the clip range with alpha, 0.1 x alpha (paper Table 5; CleanRL keeps it fixed)
     gamma: float = 0.99  # discount factor gamma (paper: 0.99)
     gae_lambda: float = 0.95  # GAE lambda (paper: 0.95)
-    minibatch_size: int = 256  # minibatch size (paper: 32 x 8 = 256); must divide num_envs * num_steps
+    minibatch_size: int = 256  # minibatch size (paper: 32 x 8 = 256); must divide --num-envs x --num-steps
     update_epochs: int = 3  # epochs K over each rollout (paper: 3; CleanRL: 4)
     norm_adv: bool = True  # normalize advantages per minibatch (core detail 7)
-    clip_coef: float = 0.1  # clip range epsilon of L^CLIP at the start (paper: 0.1 x alpha)
-    clip_vloss: bool = True  # clip the value loss around the old values with the fixed clip_coef (core detail 9; not in eq. 9)
+    clip_coef: float = 0.1  # clip range epsilon of L^CLIP at the start (paper: 0.1 x alpha), also the value loss's, fixed
+    clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef, not annealed (core detail 9; not in eq. 9)
     ent_coef: float = 0.01  # entropy bonus coefficient c2 (paper: 0.01)
     vf_coef: float = 1.0  # c1 of eq. 9, on the squared error (V - V_targ)^2 (paper: 1; CleanRL's 0.5 on half of it is 0.25 here)
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
-    save_every: int = 50  # write the checkpoint every this many iterations (it is also written at the end and on Ctrl-C)
+    save_every: int = 50  # write the checkpoint every this many iterations of 1,024 steps (it is also written at the end and on Ctrl-C)
     resume: str | None = None  # continue the run saved in this checkpoint; its hyperparameters come from the checkpoint
     eval_checkpoint: str | None = None  # evaluate the policy of this checkpoint instead of training
     eval_episodes: int = 10  # number of games for --eval-checkpoint
@@ -69,8 +69,9 @@ def compute_gae(rewards, values, next_values, terminations, truncations, gamma, 
     """Generalized advantage estimation, paper eq. (11)-(12), over [T, N] tensors.
 
     next_values[t] is V of the observation that step t reached: after a time-limit truncation, the
-    final observation's, bootstrapped (Pardo et al. 2018); no advantage flows across an episode's
-    end. The returns A + V are the value function's TD(lambda) targets (core detail 5).
+    final observation's, bootstrapped (Pardo et al. 2018; the paper's code and CleanRL treat it as a
+    termination); no advantage flows across an episode's end. The returns A + V are the value
+    function's TD(lambda) targets (core detail 5).
 
     >>> one = torch.ones(3, 1)
     >>> adv, ret = compute_gae(one, 0 * one, 0 * one, torch.tensor([[0.], [0.], [1.]]), 0 * one, 0.5, 1.0)
@@ -172,7 +173,7 @@ def layer_init(layer, std=math.sqrt(2), bias_const=0.0):
 class Agent(nn.Module):
     def __init__(self, num_actions):
         super().__init__()
-        # Atari detail 8: baselines' Nature-DQN CNN (§6.4 cites [Mni+16]'s), shared by policy and value; gains 0.01, 1 (core detail 2).
+        # Atari detail 8: baselines' Nature-DQN CNN, shared by policy and value (§6.4 names [Mni+16]'s smaller one); gains 0.01, 1 (core detail 2).
         self.network = nn.Sequential(
             layer_init(nn.Conv2d(4, 32, 8, stride=4)), nn.ReLU(),
             layer_init(nn.Conv2d(32, 64, 4, stride=2)), nn.ReLU(),
@@ -265,7 +266,7 @@ def train(args):
 
     # ALGORITHM 1: for iteration = 1, 2, ...
     for iteration in range(start_iteration, num_iterations + 1):
-        # Paper §6.4, Table 5: alpha falls linearly from 1 to 0, scaling the lr (core detail 4) and L^CLIP's clip range, not V's.
+        # Paper §6.4, Table 5: alpha falls linearly from 1 to 0, scaling the lr (core detail 4) and L^CLIP's clip range (not V's, which ppo2 annealed too).
         alpha = 1.0 - (iteration - 1.0) / num_iterations
         optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate if args.anneal_lr else args.learning_rate)
         clip_coef = torch.tensor(alpha * args.clip_coef if args.anneal_clip else args.clip_coef, device=device)
@@ -276,7 +277,7 @@ def train(args):
                 global_step += N
                 obs[step] = next_obs
                 action, logprobs[step], _, values[step] = policy(next_obs)
-                if fire is not None and lost_life.any():  # the env, not the policy, presses FIRE; the batch keeps its log-prob
+                if fire is not None and lost_life.any():  # the env, not the policy, presses FIRE; the batch keeps it as if pi_old chose it
                     action = torch.where(torch.as_tensor(lost_life, device=device), fire, action)
                     _, logprobs[step], _, values[step] = policy(next_obs, action)
                 actions[step] = action
@@ -433,7 +434,7 @@ def check_args(args):
     if args.resume is not None or args.eval_checkpoint is not None:
         args = resumed_args(load_checkpoint(args.resume or args.eval_checkpoint), args)
     if game_name(args.env_id) is None:
-        raise ValueError(f"unknown env id {args.env_id!r}: ale-py has no such game (for continuous action spaces, use ppo_continuous.py)")
+        raise ValueError(f"unknown env id {args.env_id!r}: ale-py has no such game, and this script trains Atari games only")
 
 
 def main():

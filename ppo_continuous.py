@@ -32,22 +32,22 @@ class Args:
     device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto is the CPU, where these small MLPs run fastest)
     compile: bool = False  # apply torch.compile to the policy step and the minibatch update (a slower start, a faster run)
     torch_threads: int = 1  # torch CPU threads
-    run_dir: str | None = None  # where TensorBoard logs and the checkpoint go (default: runs/{env_id}__{exp_name}__{seed}__{time})
+    run_dir: str | None = None  # where TensorBoard logs and the checkpoint go (None: runs/{env_id}__{exp_name}__{seed}__{time})
     capture_video: bool = False  # record videos of the first environment (during training) or of every evaluation episode
-    # Algorithm: defaults are the paper's MuJoCo settings (Table 3)
+    # Algorithm: the paper's MuJoCo settings (Table 3) where it gives one, else the implementation detail cited
     env_id: str = "Hopper-v5"  # the id of a gymnasium environment with a Box action space
-    total_timesteps: int = 1_000_000  # total agent steps over all envs (paper: 1M)
+    total_timesteps: int = 1_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 1M)
     learning_rate: float = 3e-4  # Adam step size (paper: 3e-4)
     num_envs: int = 1  # number of parallel actors N (paper: 1)
     num_steps: int = 2048  # steps per actor in each rollout, the horizon T (paper: 2048)
-    anneal_lr: bool = True  # anneal the learning rate linearly to 0 (core detail 4)
+    anneal_lr: bool = True  # anneal the learning rate linearly to 0 (core detail 4; Table 3 gives a fixed 3e-4, baselines' ppo1 anneals it)
     gamma: float = 0.99  # discount factor gamma (paper: 0.99)
     gae_lambda: float = 0.95  # GAE lambda (paper: 0.95)
-    minibatch_size: int = 64  # minibatch size (paper: 64); must divide num_envs * num_steps
+    minibatch_size: int = 64  # minibatch size (paper: 64); must divide --num-envs x --num-steps
     update_epochs: int = 10  # epochs K over each rollout (paper: 10)
     norm_adv: bool = True  # normalize advantages per minibatch (core detail 7)
-    clip_coef: float = 0.2  # clip range epsilon of L^CLIP (paper: 0.2)
-    clip_vloss: bool = True  # clip the value loss around the old values with the fixed clip_coef (core detail 9; not in eq. 9)
+    clip_coef: float = 0.2  # clip range epsilon of L^CLIP (paper: 0.2), also the value loss's (as in baselines' ppo2)
+    clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef (core detail 9; not in eq. 9)
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
     vf_coef: float = 0.25  # c1 of eq. 9, on the squared error (V - V_targ)^2 (paper: none; with separate networks it acts only via the grad clip; CleanRL's 0.5 on half of it)
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
@@ -65,8 +65,9 @@ def compute_gae(rewards, values, next_values, terminations, truncations, gamma, 
     """Generalized advantage estimation, paper eq. (11)-(12), over [T, N] tensors.
 
     next_values[t] is V of the observation that step t reached: after a time-limit truncation, the
-    final observation's, bootstrapped (Pardo et al. 2018); no advantage flows across an episode's
-    end. The returns A + V are the value function's TD(lambda) targets (core detail 5).
+    final observation's, bootstrapped (Pardo et al. 2018; the paper's code and CleanRL treat it as a
+    termination); no advantage flows across an episode's end. The returns A + V are the value
+    function's TD(lambda) targets (core detail 5).
 
     >>> one = torch.ones(3, 1)
     >>> adv, ret = compute_gae(one, 0 * one, 0 * one, torch.tensor([[0.], [0.], [1.]]), 0 * one, 0.5, 1.0)
@@ -433,7 +434,7 @@ def check_args(args):
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ValueError(f"{args.env_id} has a {env.action_space} action space and {env.observation_space} observations; "
-                         f"{os.path.basename(__file__)} needs a Box action space and flat observations. Use ppo_atari.py for discrete actions")  # fmt: skip
+                         f"{os.path.basename(__file__)} needs a Box action space and flat observations. Use ppo_atari.py for Atari games")  # fmt: skip
 
 
 def main():

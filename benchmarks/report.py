@@ -373,7 +373,7 @@ def atari_table(runs, reference, variants, results):
         if wall:
             lines.append(f"- {ATARI_NAMES.get(v, v)}: a run took {statistics.mean(wall) / 60:.0f} min of wall time on average here"
                          f" ({len(wall)} run{'s' if len(wall) > 1 else ''}; other work may have shared the machine).")  # fmt: skip
-    lines.append("- The paper's budget, 10M steps, on a GPU: `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`.")
+    lines.append("- The paper's budget, 10M steps, on a GPU (not yet tested on one here): `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`.")
     return lines
 
 

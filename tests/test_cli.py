@@ -224,7 +224,7 @@ def test_training_records_video_of_the_first_env(script, tmp_path):
 def test_atari_id_points_to_the_atari_script(script, tmp_path):
     proc = run_cli(script, "--env-id", "ALE/Breakout-v5", cwd=tmp_path, check=False)
     lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2 and len(lines) == 1 and "Use ppo_atari.py" in lines[0], proc.stderr
+    assert proc.returncode == 2 and len(lines) == 1 and "Use ppo_atari.py for Atari games" in lines[0], proc.stderr
 
 
 @pytest.mark.parametrize("script", [s for s in SCRIPTS if s != "ppo_atari.py"])
