@@ -434,7 +434,7 @@ def check_args(args):
     if args.resume is not None or args.eval_checkpoint is not None:
         args = resumed_args(load_checkpoint(args.resume or args.eval_checkpoint), args)
     if game_name(args.env_id) is None:
-        raise ValueError(f"unknown env id {args.env_id!r}: ale-py has no such game, and this script trains Atari games only")
+        raise ValueError(f"unknown env id {args.env_id!r}: ale-py has no such game, and this script trains only Atari games, with their discrete action space")
 
 
 def main():
