@@ -426,7 +426,8 @@ def readme_block(results=RESULTS, reference=None, full=False):
     lines = [README_START, "", f"{SCORE_RULE} {MUJOCO_VERSIONS}"]
     for folder in suite_folders(results):
         runs = load_runs(folder)
-        rel = folder.relative_to(ROOT).as_posix() if folder.is_relative_to(ROOT) else folder.name
+        # Links are relative to the README that holds the block: README.md at the root, benchmarks/README.md.
+        rel = folder.relative_to(ROOT / ("benchmarks" if full else "")).as_posix() if folder.is_relative_to(ROOT) else folder.name
         seeds = ", ".join(map(str, sorted({r.seed for r in runs})))
         steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in runs}))
         heading = f"`{folder.name}`: {len(runs)} run{'s' if len(runs) > 1 else ''} (seeds {seeds}; {steps} steps each)"

@@ -102,3 +102,13 @@ def test_quoted_figures_come_from_the_generated_tables(path):
     generated = "".join(p.read_text() for p in (ROOT / "benchmarks" / "results").rglob("*.md"))
     assert figures_not_generated(text, generated) == []
     assert unbolded_results(text) == [], "quote a result in bold, so that it is checked against the generated tables"
+
+
+@pytest.mark.parametrize("path", ["README.md", "benchmarks/README.md"])
+def test_every_relative_link_and_image_resolves(path):
+    """A link is relative to the file that holds it, as GitHub renders it: benchmarks/README.md links results/..."""
+    readme = ROOT / path
+    targets = re.findall(r"\]\(([^)\s]+)\)|src=\"([^\"]+)\"", readme.read_text())
+    relative = {t.split("#")[0] for pair in targets for t in pair if t and not re.match(r"[a-z]+:|#", t)}
+    assert relative, "no links found: the pattern is wrong"
+    assert sorted(t for t in relative if not (readme.parent / t).exists()) == []
