@@ -380,22 +380,17 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
     running, failed = {}, 0
     start = time.time()
     steps_at_start = {}
-    stopping = False
-
-    def stop(signum, frame):
-        nonlocal stopping
-        if stopping:
-            return
-        stopping = True
-        print("stopping: each run saves its checkpoint", flush=True)
-        for proc in running:  # each script saves its checkpoint on SIGTERM and exits
-            proc.terminate()
-
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGINT)}
-    last_status = 0.0
+    signals = []  # the handler only notes the signal; the loop below stops the runs, once
+    previous = {sig: signal.signal(sig, lambda signum, frame: signals.append(signum)) for sig in (signal.SIGTERM, signal.SIGINT)}
+    stopping, last_status = False, 0.0
     try:
-        while (todo and not stopping) or running:
-            while todo and len(running) < workers and not stopping:
+        while (todo and not signals) or running:
+            if signals and not stopping:
+                stopping = True
+                print("stopping: each run saves its checkpoint", flush=True)
+                for proc in running:  # each script saves its checkpoint on SIGTERM and exits
+                    proc.terminate()
+            while todo and len(running) < workers and not signals:
                 job = todo.pop(0)
                 other = running_elsewhere(job)
                 if other:
@@ -414,8 +409,6 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                 # stops each run exactly once, so that no second signal cuts a checkpoint save short.
                 proc = launch(job, cmd, log)
                 running[proc] = (job, time.time(), commit_of(job.script), resumed, log)
-                if stopping:  # a signal came while this one was starting
-                    proc.terminate()
                 job.progress = steps_at_start[job.name] = last_step(job) if resumed else 0
                 print(f"{'resume' if resumed else 'start '} {job.name}" + (f" at step {job.progress:,}" if resumed else ""), flush=True)
             time.sleep(0.2)
