@@ -14,12 +14,13 @@ SCRIPTS = sorted(p.name for p in ROOT.glob("ppo_*.py"))
 
 # How to run each script on a tiny budget: an env it accepts, a few hundred steps with a small
 # batch, a run of 32 iterations of 64 steps (long enough to interrupt), and an env it must reject
-# for its action space. A new script must add its line here, or
+# for its action space. The tiny runs have an entropy bonus (Atari's default; the MuJoCo scripts default to
+# none), so that the loss's check sees the sign of its term. A new script must add its line here, or
 # test_every_script_is_configured fails.
 TINY = {
     "ppo_continuous.py": {
         "env_id": "Hopper-v5",
-        "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128"],
+        "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128", "--ent-coef", "0.01"],
         "interruptible": ["--num-steps", "64", "--minibatch-size", "16", "--update-epochs", "10", "--total-timesteps", "2048"],
         "wrong_action_space_env": "CartPole-v1",
     },
@@ -32,7 +33,7 @@ TINY = {
     },
     "ppo_kl_penalty.py": {
         "env_id": "Hopper-v5",
-        "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128"],
+        "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128", "--ent-coef", "0.01"],
         "interruptible": ["--num-steps", "64", "--minibatch-size", "16", "--update-epochs", "10", "--total-timesteps", "2048"],
         "wrong_action_space_env": "CartPole-v1",
     },

@@ -144,11 +144,17 @@ def interrupt_at_first_checkpoint(tmp_path, total, *extra):
            "--runs-dir", str(tmp_path / "runs"), "--status-every", "1", *extra]  # fmt: skip
     run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 180
-    while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
-    out, err = proc.communicate(timeout=120)
+    try:
+        deadline = time.time() + 180
+        while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert (run_dir / "checkpoint.pt").exists(), f"no checkpoint after 180 s (runner exit {proc.poll()})"
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:  # a failed check above: SIGTERM, so that the runner also stops its run
+            proc.terminate()
+            proc.communicate(timeout=120)
     assert proc.returncode == 130, (out, err)
     assert "its checkpoint is kept" in out and "Traceback" not in err
     saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)

@@ -123,3 +123,13 @@ def test_zero_beta_cannot_be_adaptive(tmp_path):
     proc = run_cli("ppo_kl_penalty.py", "--init-beta", "0", cwd=tmp_path, check=False)
     assert proc.returncode == 2 and "--no-adaptive-beta" in proc.stderr
     assert not (tmp_path / "runs").exists()
+
+
+def test_penalty_worked_example():
+    # -E[r A - beta KL] by hand: ratios 1 and 2, advantages 1 and 1, KLs 0.1 and 0.3, beta 2:
+    # -((1 - 2 x 0.1) + (2 - 2 x 0.3)) / 2 = -(0.8 + 1.4) / 2 = -1.1; d/dKL_i = beta / 2 = 1 each.
+    kl = torch.tensor([0.1, 0.3], requires_grad=True)
+    loss = kl_penalty_loss(torch.tensor([1.0, 2.0]), torch.tensor([1.0, 1.0]), kl, 2.0)
+    loss.backward()
+    assert loss.item() == pytest.approx(-1.1)
+    torch.testing.assert_close(kl.grad, torch.tensor([1.0, 1.0]))
