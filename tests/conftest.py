@@ -5,6 +5,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -105,3 +106,19 @@ def tb_scalars(run_dir):
     acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
     acc.Reload()
     return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
+
+
+def signal_at_checkpoint(proc, checkpoint, sig, wait):
+    """Send `sig` to a training process (or a runner) once `checkpoint` exists; return its (stdout, stderr).
+    If a check fails, SIGTERM stops it, and a runner its runs, so that no process is left behind."""
+    try:
+        deadline = time.time() + wait
+        while not checkpoint.exists() and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.02)
+        assert checkpoint.exists(), f"no checkpoint after {wait} s (exit {proc.poll()})"
+        proc.send_signal(sig)
+        return proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            proc.communicate(timeout=120)

@@ -7,12 +7,11 @@ import signal
 import statistics
 import subprocess
 import sys
-import time
 
 import pytest
 import torch
 
-from conftest import ROOT
+from conftest import ROOT, signal_at_checkpoint
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import report  # noqa: E402
@@ -144,17 +143,7 @@ def interrupt_at_first_checkpoint(tmp_path, total, *extra):
            "--runs-dir", str(tmp_path / "runs"), "--status-every", "1", *extra]  # fmt: skip
     run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.time() + 180
-        while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
-            time.sleep(0.05)
-        assert (run_dir / "checkpoint.pt").exists(), f"no checkpoint after 180 s (runner exit {proc.poll()})"
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:  # a failed check above: SIGTERM, so that the runner also stops its run
-            proc.terminate()
-            proc.communicate(timeout=120)
+    out, err = signal_at_checkpoint(proc, run_dir / "checkpoint.pt", signal.SIGTERM, wait=180)
     assert proc.returncode == 130, (out, err)
     assert "its checkpoint is kept" in out and "Traceback" not in err
     saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)

@@ -5,12 +5,11 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, SCRIPTS, TINY, load_script, run_cli, tb_scalars, train_tiny
+from conftest import ONE_THREAD, ROOT, SCRIPTS, TINY, load_script, run_cli, signal_at_checkpoint, tb_scalars, train_tiny
 
 EXPECTED_SCALARS = {
     "charts/episodic_return", "charts/episodic_length", "charts/learning_rate", "charts/SPS",
@@ -85,15 +84,7 @@ def test_interrupt_saves_and_resume_continues_the_curve(script, tmp_path):
     # ignoring it; give the child the default disposition, as a terminal would.
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
-    try:
-        deadline = time.time() + 120
-        while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
-            time.sleep(0.02)
-        assert (run_dir / "checkpoint.pt").exists(), f"no checkpoint after 120 s (exit {proc.poll()})"
-        proc.send_signal(signal.SIGINT)  # Ctrl-C
-        out, err = proc.communicate(timeout=300)
-    finally:
-        proc.kill()  # a failed check above leaves no run behind (nothing if it has exited)
+    out, err = signal_at_checkpoint(proc, run_dir / "checkpoint.pt", signal.SIGINT, wait=120)  # Ctrl-C
     assert proc.returncode == 130, (out, err)
     assert "Traceback" not in err and "--resume" in out
     saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
