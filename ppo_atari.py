@@ -33,12 +33,12 @@ class Args:
     exp_name: str = os.path.basename(__file__)[: -len(".py")]  # the name of this experiment, part of the run directory's name
     seed: int = 1  # seed of torch and of the environments
     device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto is cuda when there is one)
-    compile: bool = False  # apply torch.compile to the policy step and the minibatch update (a slower start, a faster run)
+    compile: bool = False  # apply torch.compile to the policy step and the minibatch update (it compiles during the first iterations)
     torch_threads: int = 2  # torch CPU threads (the CNN's convolutions use a second thread; the MLP scripts use 1)
     run_dir: str | None = None  # where TensorBoard logs and the checkpoint go (None: runs/{env_id}__{exp_name}__{seed}__{time})
     capture_video: bool = False  # film games 0, 1, 8, 27, ... of the first env in training, and every evaluation game, in colour
     # Algorithm: the paper's Atari settings (Table 5) where it gives one, else the implementation detail cited
-    env_id: str = "BreakoutNoFrameskip-v4"  # an Atari game: a gymnasium ALE id (BreakoutNoFrameskip-v4, ALE/Breakout-v5) or a name (Breakout)
+    env_id: str = "BreakoutNoFrameskip-v4"  # an Atari game, by a gymnasium ALE id (BreakoutNoFrameskip-v4, ALE/Breakout-v5) or a name (Breakout); always played as NoFrameskip-v4 (no sticky actions)
     total_timesteps: int = 10_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 10M steps = 40M frames)
     max_episode_frames: int = 108_000  # truncate a game after this many frames of play (30 minutes at 60 Hz)
     fire_on_life_loss: bool = False  # also press FIRE after a lost life, as baselines' wrappers did (ale-py: only at a game's start)
@@ -58,7 +58,7 @@ class Args:
     vf_coef: float = 1.0  # c1 of eq. 9, on the squared error (V - V_targ)^2 (paper: 1; CleanRL's 0.5 on half of it is 0.25 here)
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
-    save_every: int = 50  # write the checkpoint every this many iterations of 1,024 steps (it is also written at the end and on Ctrl-C)
+    save_every: int = 50  # write the checkpoint every this many iterations of N x T steps (it is also written at the end and on Ctrl-C)
     resume: str | None = None  # continue the run saved in this checkpoint; its hyperparameters come from the checkpoint
     eval_checkpoint: str | None = None  # evaluate the policy of this checkpoint instead of training
     eval_episodes: int = 10  # number of games for --eval-checkpoint
@@ -230,7 +230,7 @@ def train(args):
         pg_loss = clipped_surrogate_loss(ratio, mb_advantages, clip_coef)
         v_loss = value_loss(newvalue, mb_values, mb_returns, args.clip_coef, args.clip_vloss)  # the fixed clip range, never annealed
         entropy = entropy.mean()
-        loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # core detail 10, signs flipped to minimize
+        loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
         optimizer.zero_grad()
         loss.backward()
         if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
@@ -301,7 +301,7 @@ def train(args):
                             write_video(args.env_id, video_reset_frames, video_actions, f"{run_dir}/videos/step-{global_step}-game-{games_of_env0}.mp4")
                         games_of_env0, video_actions, video_reset_frames = games_of_env0 + 1, [], frame_numbers[0]
 
-            # ADVANTAGES: next_values[t] = V(s_{t+1}), or V(final observation) where an episode was truncated.
+            # ADVANTAGES: next_values[t] = V(s_{t+1}), the last one eq. (10)'s bootstrap V(s_T), or V(final observation) where an episode was truncated.
             next_values = torch.cat([values[1:], agent.get_value(next_obs)[None]])
             next_values = torch.where(truncations.bool(), final_values, next_values)
             advantages, returns = compute_gae(rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda)

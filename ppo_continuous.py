@@ -30,10 +30,10 @@ class Args:
     exp_name: str = os.path.basename(__file__)[: -len(".py")]  # the name of this experiment, part of the run directory's name
     seed: int = 1  # seed of torch and of the environments
     device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto is the CPU, where these small MLPs run fastest)
-    compile: bool = False  # apply torch.compile to the policy step and the minibatch update (a slower start, a faster run)
+    compile: bool = False  # apply torch.compile to the policy step and the minibatch update (it compiles during the first iterations)
     torch_threads: int = 1  # torch CPU threads
     run_dir: str | None = None  # where TensorBoard logs and the checkpoint go (None: runs/{env_id}__{exp_name}__{seed}__{time})
-    capture_video: bool = False  # record videos of the first environment (during training) or of every evaluation episode
+    capture_video: bool = False  # film episodes 0, 1, 8, 27, ... of the first env in training (every 1000th after 1000), and every evaluation episode
     # Algorithm: the paper's MuJoCo settings (Table 3) where it gives one, else the implementation detail cited
     env_id: str = "Hopper-v5"  # the id of a gymnasium environment with a Box action space
     total_timesteps: int = 1_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 1M)
@@ -49,7 +49,7 @@ class Args:
     clip_coef: float = 0.2  # clip range epsilon of L^CLIP (paper: 0.2), also the value loss's (as in baselines' ppo2)
     clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef (core detail 9; not in eq. 9)
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
-    vf_coef: float = 0.25  # c1 of eq. 9, on the squared error (V - V_targ)^2 (paper: none; with separate networks it acts only via the grad clip; CleanRL's 0.5 on half of it)
+    vf_coef: float = 0.25  # c1 of eq. 9, on the squared error (V - V_targ)^2 (paper: irrelevant with separate networks, §6.1; here it acts only via the grad clip; CleanRL's 0.5 on half of it)
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
     norm_obs: bool = True  # normalize observations with running statistics (continuous details 6-7)
@@ -226,7 +226,7 @@ def train(args):
         pg_loss = clipped_surrogate_loss(ratio, mb_advantages, clip_coef)
         v_loss = value_loss(newvalue, mb_values, mb_returns, args.clip_coef, args.clip_vloss)  # the fixed clip range, never annealed
         entropy = entropy.mean()
-        loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # core detail 10, signs flipped to minimize
+        loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
         optimizer.zero_grad()
         loss.backward()
         if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
@@ -293,7 +293,7 @@ def train(args):
                     writer.add_scalar("charts/episodic_length", episode_length[i], global_step)
                     episode_return[i], episode_length[i] = 0.0, 0
 
-            # ADVANTAGES: next_values[t] = V(s_{t+1}), or V(final observation) where an episode was truncated.
+            # ADVANTAGES: next_values[t] = V(s_{t+1}), the last one eq. (10)'s bootstrap V(s_T), or V(final observation) where an episode was truncated.
             next_values = torch.cat([values[1:], agent.get_value(next_obs)[None]])
             next_values = torch.where(truncations.bool(), final_values, next_values)
             advantages, returns = compute_gae(rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda)
