@@ -250,8 +250,8 @@ def train(args):
     obs, actions = torch.zeros((T, N, 4, 84, 84), dtype=torch.uint8, device=device), torch.zeros((T, N), dtype=torch.long, device=device)
     logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, N), device=device)
 
-    # Env i of run --seed s is seeded s * N + i: two seeds share no env. A resumed run starts new games.
-    next_obs, infos = envs.reset(seed=args.seed * N + np.arange(N))
+    # Env i of run --seed s, from step g on, is seeded (s + g) N + i: runs share no env, and a resume starts new games.
+    next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + np.arange(N))
     next_obs, frame_numbers, lost_life = torch.as_tensor(next_obs, device=device), infos["episode_frame_number"], np.zeros(N, dtype=bool)
     # Env 0's game so far, its reset's frames and its actions, which --capture-video replays in colour when the game ends.
     episode_return, episode_length, games_of_env0, video_reset_frames, video_actions = np.zeros(N), np.zeros(N, dtype=np.int64), 0, frame_numbers[0], []

@@ -164,28 +164,6 @@ def test_video_replays_the_same_game_in_colour_at_60_hz(env_id, tmp_path, monkey
     assert np.abs(video[..., 0].astype(int) - video[..., 2]).mean() > 2, "the frames are gray"
 
 
-def test_seeds_of_different_runs_share_no_env(tmp_path, monkeypatch):
-    import ale_py
-
-    class Started(Exception):
-        pass
-
-    seeds = {}
-
-    def reset(self, *, seed=None, options=None):  # note the envs' seeds, then stop the run
-        seeds[run] = set((np.asarray(seed) + (np.arange(self.num_envs) if np.ndim(seed) == 0 else 0)).tolist())
-        raise Started
-
-    monkeypatch.setattr(ale_py.AtariVectorEnv, "reset", reset)
-    for run in range(1, 11):
-        with pytest.raises(Started):
-            atari.train(atari.Args(seed=run, num_envs=8, run_dir=str(tmp_path / str(run))))
-    assert all(len(s) == 8 for s in seeds.values()), "the envs of one run have different seeds"
-    for a in seeds:
-        for b in seeds:
-            assert a == b or not seeds[a] & seeds[b], f"runs with --seed {a} and {b} share env seeds {seeds[a] & seeds[b]}"
-
-
 @pytest.mark.parametrize("fire_on_life_loss", [True, False])
 def test_fire_on_life_loss(fire_on_life_loss, tmp_path, monkeypatch):
     # Breakout: after a lost life the ball waits for FIRE. With the flag, the env presses it as the next action.

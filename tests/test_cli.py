@@ -75,6 +75,33 @@ def test_same_seed_same_result_different_seed_different(script, tmp_path, tiny_r
     assert tb_scalars(a)["charts/episodic_return"] == tb_scalars(b)["charts/episodic_return"]
 
 
+def test_seeds_of_different_runs_share_no_env(script, tmp_path, monkeypatch):
+    # Gymnasium and ale-py seed env i with s + i when given one seed s: seed 1's second env would be seed 2's first.
+    import ale_py
+    import gymnasium
+
+    module = load_script(script)
+    vector_env = ale_py.AtariVectorEnv if script == "ppo_atari.py" else gymnasium.vector.SyncVectorEnv
+
+    class Started(Exception):
+        pass
+
+    seeds = {}
+
+    def reset(self, *, seed=None, options=None):  # note the envs' seeds, then stop the run
+        seeds[run] = set((np.asarray(seed) + (np.arange(self.num_envs) if np.ndim(seed) == 0 else 0)).tolist())
+        raise Started
+
+    monkeypatch.setattr(vector_env, "reset", reset)
+    for run in range(1, 11):
+        with pytest.raises(Started):
+            module.train(module.Args(env_id=TINY[script]["env_id"], seed=run, num_envs=8, torch_threads=1, run_dir=str(tmp_path / str(run))))
+    assert all(len(s) == 8 for s in seeds.values()), "the envs of one run have different seeds"
+    for a in seeds:
+        for b in seeds:
+            assert a == b or not seeds[a] & seeds[b], f"runs with --seed {a} and {b} share env seeds {seeds[a] & seeds[b]}"
+
+
 def test_interrupt_saves_and_resume_continues_the_curve(script, tmp_path):
     cfg = TINY[script]
     run_dir = tmp_path / "run"
