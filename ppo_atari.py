@@ -250,7 +250,7 @@ def train(args):
     obs, actions = torch.zeros((T, N, 4, 84, 84), dtype=torch.uint8, device=device), torch.zeros((T, N), dtype=torch.long, device=device)
     logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, N), device=device)
 
-    # Env i of run --seed s, from step g on, is seeded (s + g) N + i: runs share no env, and a resume starts new games.
+    # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env; a resume starts new games.
     next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + np.arange(N))
     next_obs, frame_numbers, lost_life = torch.as_tensor(next_obs, device=device), infos["episode_frame_number"], np.zeros(N, dtype=bool)
     # Env 0's game so far, its reset's frames and its actions, which --capture-video replays in colour when the game ends.

@@ -275,7 +275,7 @@ def train(args):
     obs, actions = torch.zeros((T, N, obs_dim), device=device), torch.zeros((T, N, act_dim), device=device)
     logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, N), device=device)
 
-    # Env i of run --seed s, from step g on, is seeded (s + g) N + i: runs share no env, and a resume starts new episodes.
+    # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env; a resume starts new episodes.
     next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + np.arange(N)).tolist())
     next_obs = torch.as_tensor(agent.normalize_obs(next_obs, update=True), device=device)
     discounted_return, episode_return, episode_length = np.zeros(N), np.zeros(N), np.zeros(N, dtype=np.int64)
