@@ -291,8 +291,8 @@ def tables(folder, runs, reference, results, level="##"):
             missing = "not run" if not n else f"not on every env yet ({n} run{'s' if n > 1 else ''})"
             lines.append(f"| {v} | {ours[0]:.2f} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | {missing} | – | {paper[0]:.2f} |")
         text = verdict(norm, suite_variants("table1"))
-        ran = sum(v in norm for v in suite_variants("table1"))
-        lines += ["", text or f"The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping) waits for all 11 rows: {ran} are in."]
+        ran = sum({r.env_id for r in runs if r.variant == v} == set(envs) for v in suite_variants("table1"))
+        lines += ["", text or f"The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping) waits for all 11 rows: {ran} have run on every env."]
         by_env = normalized_by_env(runs, random, norm_envs, best_of) if norm_envs else {}
         lines += [] if not by_env else ["", "Per env (normalized score, runs), and the commits each setting's runs were made at:", "",
                   "| setting | " + " | ".join(norm_envs) + " | commits |", "|---" * (len(norm_envs) + 2) + "|"]  # fmt: skip

@@ -329,7 +329,10 @@ def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds
     assert "| clip0.2 | " + f"{100 / max(100.0, kl003_score):.2f} (1) | abc1234 |" in text, "the per-env breakdown, with its commits"
     assert f"**The paper's order {'holds' if holds else 'does not hold'} here:**" in report.readme_block(results=results), "README too"
     (folder / "A-v0__beta10__seed1.csv").unlink()
-    assert "waits for all 11 rows: 10 are in" in report.report(folder, results=results)
+    assert "waits for all 11 rows: 10 have run on every env" in report.report(folder, results=results)
+    fake_random(results, "B-v0", [0.0])
+    fake_run(folder, "B-v0", "clip0.2", 1, 100.0)  # a second env, on which only clip 0.2 has run
+    assert "waits for all 11 rows: 1 have run on every env" in report.report(folder, results=results)
 
 
 def test_report_uses_only_envs_every_variant_ran(tmp_path):
