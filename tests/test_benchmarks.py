@@ -329,10 +329,16 @@ def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds
     assert "| clip0.2 | " + f"{100 / max(100.0, kl003_score):.2f} (1) | abc1234 |" in text, "the per-env breakdown, with its commits"
     assert f"**The paper's order {'holds' if holds else 'does not hold'} here:**" in report.readme_block(results=results), "README too"
     (folder / "A-v0__beta10__seed1.csv").unlink()
-    assert "waits for all 11 rows: 10 have run on every env" in report.report(folder, results=results)
+    assert "waits for all 11 rows on every env and seed: 10 of 11 runs are in." in report.report(folder, results=results)
+    fake_run(folder, "A-v0", "beta10", 1, 50.0)
     fake_random(results, "B-v0", [0.0])
-    fake_run(folder, "B-v0", "clip0.2", 1, 100.0)  # a second env, on which only clip 0.2 has run
-    assert "waits for all 11 rows: 1 have run on every env" in report.report(folder, results=results)
+    fake_run(folder, "B-v0", "clip0.2", 1, 100.0)  # a second env, on which only clip 0.2 has run: every row has a score
+    text = report.report(folder, results=results)  # on A-v0 alone, but the verdict waits for the whole grid
+    assert "waits for all 11 rows on every env and seed: 12 of 22 runs are in. Until then the scores are over A-v0," in text
+    assert "The paper's order" not in text and "The paper's order" not in report.readme_block(results=results)
+    (folder / "B-v0__clip0.2__seed1.csv").unlink()
+    fake_run(folder, "A-v0", "clip0.2", 2, 100.0)  # and a second seed, which only clip 0.2 has
+    assert "waits for all 11 rows on every env and seed: 12 of 22 runs are in." in report.report(folder, results=results)
 
 
 def test_report_uses_only_envs_every_variant_ran(tmp_path):
