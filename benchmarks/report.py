@@ -297,7 +297,7 @@ def tables(folder, runs, reference, results, level="##"):
             missing = "not run" if not n else f"not on every env yet ({n} run{'s' if n > 1 else ''})"
             lines.append(f"| {v} | {ours[0]:.2f} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | {missing} | – | {paper[0]:.2f} |")
         rows = suite_variants("table1")
-        text = verdict(norm, rows) if complete(runs, rows) else None  # never on a partial grid: its best is easier to be
+        text = verdict(norm, rows) if complete(runs, rows) else None  # not on a partial grid, whose scores rest on fewer envs or seeds
         grid = len(rows) * len(envs) * len({r.seed for r in runs})
         over = "" if set(norm_envs) == set(envs) else f" Until then the scores are over {', '.join(norm_envs) or 'no env'}, where every row run so far has run."
         lines += ["", text or f"The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping) waits for all 11 rows on every env and seed: {sum(r.variant in rows for r in runs)} of {grid} runs are in.{over}"]
