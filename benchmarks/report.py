@@ -137,13 +137,32 @@ def normalized_scores(runs, random):
     return {v: (statistics.mean(s), len(s)) for v, s in per_variant.items() if s}, envs, best_of
 
 
-def normalized_by_env(runs, random, envs, best_of):
-    """{variant: {env: (mean normalized score of its runs there, number of runs)}}, on the scale of normalized_scores."""
+def normalized_runs(runs, random, envs, best_of):
+    """{variant: {env: [the normalized score of each of its runs there]}}, on the scale of normalized_scores."""
     by_env, out = group(runs), {}
     for env in envs:
         lo, hi = random[env], statistics.mean(r.score for r in by_env[env][best_of[env]])
         for variant, variant_runs in by_env[env].items():
-            out.setdefault(variant, {})[env] = (statistics.mean((r.score - lo) / (hi - lo) for r in variant_runs), len(variant_runs))
+            out.setdefault(variant, {})[env] = [(r.score - lo) / (hi - lo) for r in variant_runs]
+    return out
+
+
+def normalized_by_env(runs, random, envs, best_of):
+    """{variant: {env: (mean normalized score of its runs there, number of runs)}}, on the scale of normalized_scores."""
+    per_run = normalized_runs(runs, random, envs, best_of)
+    return {v: {env: (statistics.mean(xs), len(xs)) for env, xs in per_env.items()} for v, per_env in per_run.items()}
+
+
+def standard_errors(runs, random, envs, best_of):
+    """{variant: the standard error over seeds of its normalized score}, for the variants with 2 or more runs on every env.
+
+    The score is the mean of N = sum of n_e runs, n_e on env e, whose scores vary by s_e² from seed to seed there; its
+    variance is sum(n_e s_e²) / N². The envs themselves are fixed, and so is each env's scale (its best variant's mean).
+    """
+    out = {}
+    for v, per_env in normalized_runs(runs, random, envs, best_of).items():
+        if len(per_env) == len(envs) and all(len(xs) > 1 for xs in per_env.values()):
+            out[v] = math.sqrt(sum(len(xs) * statistics.variance(xs) for xs in per_env.values())) / sum(map(len, per_env.values()))
     return out
 
 
@@ -153,23 +172,45 @@ def complete(runs, rows):
     return all((v, e, s) in have for v in rows for e in {r.env_id for r in runs} for s in {r.seed for r in runs})
 
 
-def verdict(norm, rows):
+def verdict(norm, rows, se=None):
     """Whether the paper's order holds in our normalized scores (Table 1: clip 0.2 best, no clipping worst,
-    adaptive KL below clipping), in words computed from the scores; None if a row has no score."""
+    adaptive KL below clipping), in words computed from the scores; None if a row has no score.
+
+    se: {row: standard error}. Each comparison then gives its gap ± the gap's standard error, and says when the gap
+    is within twice that: the seeds run cannot tell the two rows apart.
+    """
     if any(row not in norm for row in rows):
         return None
-    score = {row: norm[row][0] for row in rows}
+    score, se = {row: norm[row][0] for row in rows}, se or {}
     best, worst = max(score, key=score.get), min(score, key=score.get)
     kl = [row for row in rows if row.startswith("kl")]
     best_kl = max(kl, key=score.get)
+    runner_up = max((row for row in rows if row != "clip0.2"), key=score.get)
+    second_worst = min((row for row in rows if row != "no-clip"), key=score.get)
+    noise = []
+
+    def gap(a, b):
+        """How far row a is above row b, with the gap's standard error where both rows have one."""
+        d = score[a] - score[b]
+        if a not in se or b not in se:
+            return f"by {d:.2f}"
+        e = math.hypot(se[a], se[b])
+        noise.append(abs(d) <= 2 * e)
+        return f"by {d:.2f} ± {e:.2f}" + (" (within 2 standard errors)" if noise[-1] else "")
+
     parts = [
-        "clip 0.2 is the best of the 11 rows" if best == "clip0.2" else f"clip 0.2 ({score['clip0.2']:.2f}) is not the best row: {best} is ({score[best]:.2f})",
-        "no clipping or penalty is the worst" if worst == "no-clip" else f"no clipping ({score['no-clip']:.2f}) is not the worst row: {worst} is ({score[worst]:.2f})",
-        f"every adaptive KL row is below clip 0.2 (the best, {best_kl}, scores {score[best_kl]:.2f} against {score['clip0.2']:.2f})"
-        if score[best_kl] < score["clip0.2"] else f"adaptive KL {best_kl} ({score[best_kl]:.2f}) is not below clip 0.2 ({score['clip0.2']:.2f})",
+        f"clip 0.2 is the best of the 11 rows, ahead of {runner_up} {gap('clip0.2', runner_up)}" if best == "clip0.2"
+        else f"clip 0.2 ({score['clip0.2']:.2f}) is not the best row: {best} is ({score[best]:.2f}), ahead {gap(best, 'clip0.2')}",
+        f"no clipping or penalty is the worst, behind {second_worst} {gap(second_worst, 'no-clip')}" if worst == "no-clip"
+        else f"no clipping ({score['no-clip']:.2f}) is not the worst row: {worst} is ({score[worst]:.2f}), behind it {gap('no-clip', worst)}",
+        f"every adaptive KL row is below clip 0.2: the best, {best_kl} ({score[best_kl]:.2f}), is behind it {gap('clip0.2', best_kl)}"
+        if score[best_kl] < score["clip0.2"] else f"adaptive KL {best_kl} ({score[best_kl]:.2f}) is not below clip 0.2 ({score['clip0.2']:.2f}): it is ahead {gap(best_kl, 'clip0.2')}",
     ]  # fmt: skip
     holds = best == "clip0.2" and worst == "no-clip" and score[best_kl] < score["clip0.2"]
-    return f"**The paper's order {'holds' if holds else 'does not hold'} here:** " + "; ".join(parts) + "."
+    text = f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:** " + "; ".join(parts) + "."
+    if noise:  # a gap has a standard error
+        text += " ± is the standard error over seeds" + ("; a gap within twice it is one these seeds cannot settle." if any(noise) else ".")
+    return text
 
 
 def fmt(mean, std=None):
@@ -279,6 +320,7 @@ def tables(folder, runs, reference, results, level="##"):
         envs = sorted({r.env_id for r in runs})
         random = {env: random_score(env, results) for env in envs}
         norm, norm_envs, best_of = normalized_scores(runs, random)
+        errors = standard_errors(runs, random, norm_envs, best_of)
         lines += [
             f"{level} Normalized score (the paper's Table 1)",
             "",
@@ -286,6 +328,7 @@ def tables(folder, runs, reference, results, level="##"):
             "Per env the random policy scores 0 and the best of the variants *run here* scores 1; the paper",
             "took the best of all 11 of its settings, so where fewer are run here the best is easier to be,",
             "and the figures are comparable with the paper's in their order more than in their values.",
+            "A score is shown ± its standard error over seeds where every env has 2 or more runs (the paper gives none).",
             "",
             "| setting | ours: normalized score | runs | paper, Table 1 |",
             "|---|---|---|---|",
@@ -295,9 +338,10 @@ def tables(folder, runs, reference, results, level="##"):
             ours = norm.get(v)
             n = sum(r.variant == v for r in runs)
             missing = "not run" if not n else f"not on every env yet ({n} run{'s' if n > 1 else ''})"
-            lines.append(f"| {v} | {ours[0]:.2f} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | {missing} | – | {paper[0]:.2f} |")
+            ours_text = ours and f"{ours[0]:.2f}" + (f" ± {errors[v]:.2f}" if v in errors else "")
+            lines.append(f"| {v} | {ours_text} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | {missing} | – | {paper[0]:.2f} |")
         rows = suite_variants("table1")
-        text = verdict(norm, rows) if complete(runs, rows) else None  # not on a partial grid, whose scores rest on fewer envs or seeds
+        text = verdict(norm, rows, errors) if complete(runs, rows) else None  # not on a partial grid, whose scores rest on fewer envs or seeds
         grid = len(rows) * len(envs) * len({r.seed for r in runs})
         over = "" if set(norm_envs) == set(envs) else f" Until then the scores are over {', '.join(norm_envs) or 'no env'}, where every row run so far has run."
         lines += ["", text or f"The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping) waits for all 11 rows on every env and seed: {sum(r.variant in rows for r in runs)} of {grid} runs are in.{over}"]

@@ -321,13 +321,16 @@ def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds
     for variant, value in scores.items():
         fake_run(folder, "A-v0", variant, 1, value)
     text = report.report(folder, results=results)
-    assert f"**The paper's order {'holds' if holds else 'does not hold'} here:**" in text
-    if holds:
-        assert "clip 0.2 is the best of the 11 rows; no clipping or penalty is the worst; every adaptive KL row is below clip 0.2" in text
+    assert f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:**" in text
+    if holds:  # one seed: no standard errors, so the gaps stand alone
+        assert ("clip 0.2 is the best of the 11 rows, ahead of kl0.03 by 0.20; no clipping or penalty is the worst, behind clip0.1 by 0.40;"
+                " every adaptive KL row is below clip 0.2: the best, kl0.03 (0.80), is behind it by 0.20.") in text
     else:  # kl0.03 (1.20 on the scale where the best, itself, is 1) beats clip 0.2 (100 / 120)
-        assert "clip 0.2 (0.83) is not the best row: kl0.03 is (1.00)" in text and "adaptive KL kl0.03 (1.00) is not below clip 0.2 (0.83)" in text
+        assert "clip 0.2 (0.83) is not the best row: kl0.03 is (1.00), ahead by 0.17" in text
+        assert "adaptive KL kl0.03 (1.00) is not below clip 0.2 (0.83): it is ahead by 0.17." in text
+    assert "±" not in text.split("The paper's order")[1].split("\n")[0]
     assert "| clip0.2 | " + f"{100 / max(100.0, kl003_score):.2f} (1) | abc1234 |" in text, "the per-env breakdown, with its commits"
-    assert f"**The paper's order {'holds' if holds else 'does not hold'} here:**" in report.readme_block(results=results), "README too"
+    assert f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:**" in report.readme_block(results=results), "README too"
     (folder / "A-v0__beta10__seed1.csv").unlink()
     assert "waits for all 11 rows on every env and seed: 10 of 11 runs are in." in report.report(folder, results=results)
     fake_run(folder, "A-v0", "beta10", 1, 50.0)
@@ -339,6 +342,45 @@ def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds
     (folder / "B-v0__clip0.2__seed1.csv").unlink()
     fake_run(folder, "A-v0", "clip0.2", 2, 100.0)  # and a second seed, which only clip 0.2 has
     assert "waits for all 11 rows on every env and seed: 12 of 22 runs are in." in report.report(folder, results=results)
+
+
+def test_table1_standard_errors_pool_the_seeds_of_each_env(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    scores = {("A-v0", "clip0.2"): [10.0, 20.0], ("A-v0", "no-clip"): [4.0, 8.0], ("B-v0", "clip0.2"): [10.0, 14.0, 12.0], ("B-v0", "no-clip"): [0.0, 30.0, 15.0]}
+    for (env, variant), values in scores.items():
+        for seed, value in enumerate(values, start=1):
+            fake_run(folder, env, variant, seed, value)
+    fake_run(folder, "A-v0", "kl0.01", 1, 9.0)  # one run on one env: no standard error, and no entry in the common envs
+    runs, random = report.load_runs(folder), {"A-v0": 0.0, "B-v0": -15.0}
+    norm, envs, best = report.normalized_scores(runs, random)
+    assert envs == ["A-v0"] and sorted(report.standard_errors(runs, random, envs, best)) == ["clip0.2", "no-clip"]  # kl0.01: one run
+    runs = [r for r in runs if r.variant != "kl0.01"]
+    norm, envs, best = report.normalized_scores(runs, random)
+    se = report.standard_errors(runs, random, envs, best)
+    # By hand: A's scale is clip0.2's mean, 15 (random 0); B's is 30 (no-clip's mean 15, random -15). The score of a
+    # row is the mean of its 5 runs, 2 on A and 3 on B; the variance of that mean is (2 var_A + 3 var_B) / 5².
+    var = {"clip0.2": (2 * statistics.variance([10 / 15, 20 / 15]) + 3 * statistics.variance([25 / 30, 29 / 30, 27 / 30])),
+           "no-clip": (2 * statistics.variance([4 / 15, 8 / 15]) + 3 * statistics.variance([15 / 30, 45 / 30, 30 / 30]))}
+    assert se == pytest.approx({v: math.sqrt(x) / 5 for v, x in var.items()})
+
+
+@pytest.mark.parametrize("beta3, within", [([100.0, 120.0], True), ([104.0, 106.0], False)])
+def test_table1_verdict_says_when_a_gap_is_within_the_noise(tmp_path, beta3, within):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    fake_random(results, "A-v0", [0.0])
+    scores = {v: [50.0, 52.0] for v in run.SUITES["table1"].variants} | {"clip0.2": [100.0, 100.0], "no-clip": [10.0, 12.0], "beta3": beta3}
+    for variant, values in scores.items():
+        for seed, value in enumerate(values, start=1):
+            fake_run(folder, "A-v0", variant, seed, value)
+    line = next(line for line in report.report(folder, results=results).splitlines() if line.startswith("**The paper's order"))
+    best = statistics.mean(scores["beta3"])  # beta3 leads, by one seed, and sets the scale
+    d = (best - 100.0) / best
+    e = math.hypot(statistics.stdev([x / best for x in beta3]) / math.sqrt(2), 0.0)  # clip 0.2's two seeds agree: no error
+    assert f"beta3 is (1.00), ahead by {d:.2f} ± {e:.2f}" + (" (within 2 standard errors);" if within else ";") in line
+    assert " ± is the standard error over seeds" in line and ("a gap within twice it is one these seeds cannot settle" in line) == within
+    assert f"| beta3 | 1.00 ± {e:.2f} | 2 |" in report.report(folder, results=results)
 
 
 def test_report_uses_only_envs_every_variant_ran(tmp_path):
