@@ -521,7 +521,8 @@ def cost_block(results=RESULTS):
         lines += [f"A 1M-step MuJoCo run took {per_run:.0f} min of wall time on one core here, on average over {len(minutes)} runs."
                   f" Table 1 as the paper ran it, {len(full)} runs ({len(SUITES['table1'].variants)} rows x 7 envs x 3 seeds), is then"
                   f" about {len(full) * per_run / 60:.0f} CPU-hours; on our 4 envs ({', '.join(TABLE1_ENVS)}) it is {len(ours)} runs,"
-                  f" about {len(ours) * per_run / 60:.0f} CPU-hours, of which {todo} runs ({todo * per_run / 60:.0f} CPU-hours) are not done yet."]  # fmt: skip
+                  f" about {len(ours) * per_run / 60:.0f} CPU-hours, "
+                  + (f"of which {todo} run{'s are' if todo > 1 else ' is'} not done yet ({todo * per_run / 60:.0f} CPU-hours)." if todo else "all of them done.")]  # fmt: skip
     return "\n".join(lines + ["", COST_END])
 
 

@@ -478,6 +478,18 @@ def test_reference_figures_have_a_source_each():
     assert {s for (c, _, s) in reference if c == "paper_table1"} == set(run.SUITES["table1"].variants)
 
 
+def test_cost_of_table1_counts_the_runs_not_done(tmp_path):
+    results = tmp_path / "results"
+    fake_run(results / "mujoco", "Hopper-v5", "clip0.2", 1, 100.0)  # one run of 60 s sets the cost per run
+    assert "132 runs, about 2 CPU-hours, of which 132 runs are not done yet (2 CPU-hours)." in report.cost_block(results)
+    jobs = run.make_grid("table1", envs=report.TABLE1_ENVS, results_root=results)
+    for job in jobs[1:]:
+        fake_run(job.csv.parent, job.env_id, job.variant, job.seed, 1.0)
+    assert "of which 1 run is not done yet (0 CPU-hours)." in report.cost_block(results)
+    fake_run(jobs[0].csv.parent, jobs[0].env_id, jobs[0].variant, jobs[0].seed, 1.0)
+    assert report.cost_block(results).count("all of them done.") == 1
+
+
 @pytest.mark.parametrize("path,full", [("README.md", False), ("benchmarks/README.md", True)])
 def test_readme_results_block_is_generated_from_the_committed_csvs(path, full):
     """The READMEs' Results blocks are what report.py makes from the CSVs in benchmarks/results."""
