@@ -127,18 +127,14 @@ def normalized_scores(runs, random):
     by_env = group(runs)
     variants = sorted({run.variant for run in runs})
     envs = sorted(env for env, row in by_env.items() if all(v in row for v in variants) and random.get(env) is not None)
-    per_variant, best_of = {v: [] for v in variants}, {}
-    for env in envs:
-        means = {v: statistics.mean(r.score for r in by_env[env][v]) for v in variants}
-        best_of[env] = max(means, key=means.get)
-        lo, hi = random[env], means[best_of[env]]
-        for v in variants:
-            per_variant[v] += [(r.score - lo) / (hi - lo) for r in by_env[env][v]]
-    return {v: (statistics.mean(s), len(s)) for v, s in per_variant.items() if s}, envs, best_of
+    best_of = {env: max(variants, key=lambda v: statistics.mean(r.score for r in by_env[env][v])) for env in envs}
+    pooled = {v: [x for xs in per_env.values() for x in xs] for v, per_env in normalized_runs(runs, random, envs, best_of).items()}
+    return {v: (statistics.mean(s), len(s)) for v, s in pooled.items()}, envs, best_of
 
 
 def normalized_runs(runs, random, envs, best_of):
-    """{variant: {env: [the normalized score of each of its runs there]}}, on the scale of normalized_scores."""
+    """{variant: {env: [the normalized score of each of its runs there]}}: on each env the random policy scores 0
+    and the mean of its best variant, best_of[env], scores 1."""
     by_env, out = group(runs), {}
     for env in envs:
         lo, hi = random[env], statistics.mean(r.score for r in by_env[env][best_of[env]])
@@ -161,7 +157,7 @@ def standard_errors(runs, random, envs, best_of):
     """
     out = {}
     for v, per_env in normalized_runs(runs, random, envs, best_of).items():
-        if len(per_env) == len(envs) and all(len(xs) > 1 for xs in per_env.values()):
+        if all(len(xs) > 1 for xs in per_env.values()):
             out[v] = math.sqrt(sum(len(xs) * statistics.variance(xs) for xs in per_env.values())) / sum(map(len, per_env.values()))
     return out
 

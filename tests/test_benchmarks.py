@@ -377,7 +377,7 @@ def test_table1_verdict_says_when_a_gap_is_within_the_noise(tmp_path, beta3, wit
     line = next(line for line in report.report(folder, results=results).splitlines() if line.startswith("**The paper's order"))
     best = statistics.mean(scores["beta3"])  # beta3 leads, by one seed, and sets the scale
     d = (best - 100.0) / best
-    e = math.hypot(statistics.stdev([x / best for x in beta3]) / math.sqrt(2), 0.0)  # clip 0.2's two seeds agree: no error
+    e = statistics.stdev([x / best for x in beta3]) / math.sqrt(2)  # the gap's error is beta3's: clip 0.2's two seeds agree
     assert f"beta3 is (1.00), ahead by {d:.2f} ± {e:.2f}" + (" (within 2 standard errors);" if within else ";") in line
     assert " ± is the standard error over seeds" in line and ("a gap within twice it is one these seeds cannot settle" in line) == within
     assert f"| beta3 | 1.00 ± {e:.2f} | 2 |" in report.report(folder, results=results)
