@@ -64,12 +64,18 @@ def main():
 
             t = seconds_per_call(update, 8)
             rate = 3 * 2 * MACS * 256 / t / 1e9
-            print(f"| {threads} | update, minibatch 256 | {layout} | {t * 1e3:.0f} ms | {rate:.1f} | {rate / matmul:.2f} |")
+            print(
+                f"| {threads} | update, minibatch 256 | {layout} | {t * 1e3:.0f} ms | {rate:.1f} | {rate / matmul:.2f} |"
+            )
             frames = torch.randint(0, 256, (8, 4, 84, 84), dtype=torch.uint8)
             with torch.inference_mode():
-                t = seconds_per_call(lambda: agent.network(frames.contiguous(memory_format=memory_format).float() / 255.0), 40)
+                t = seconds_per_call(
+                    lambda: agent.network(frames.contiguous(memory_format=memory_format).float() / 255.0), 40
+                )
             rate = 2 * MACS * 8 / t / 1e9
-            print(f"| {threads} | inference, batch 8 | {layout} | {t * 1e3:.2f} ms | {rate:.1f} | {rate / matmul:.2f} |")
+            print(
+                f"| {threads} | inference, batch 8 | {layout} | {t * 1e3:.2f} ms | {rate:.1f} | {rate / matmul:.2f} |"
+            )
     print("")
     print(f"- Versions: {versions()}; machine: {machine()}")
     text = "\n".join(lines) + "\n"

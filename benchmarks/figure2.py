@@ -81,7 +81,9 @@ def interpolate(alphas, **overrides):
 
     _, before, after, rollout, advantages, eps = first_update(**overrides)
     advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-    old = {k: v.clone() for k, v in before.state_dict().items() if k.startswith(POLICY)}  # a copy: loading writes in place
+    old = {
+        k: v.clone() for k, v in before.state_dict().items() if k.startswith(POLICY)
+    }  # a copy: loading writes in place
     new = {k: v for k, v in after.state_dict().items() if k.startswith(POLICY)}
     with torch.no_grad():
         pi_old = Normal(before.actor_mean(rollout["obs"]), before.actor_logstd.exp())
@@ -91,8 +93,15 @@ def interpolate(alphas, **overrides):
             pi = Normal(before.actor_mean(rollout["obs"]), before.actor_logstd.exp())
             ratio = (pi.log_prob(rollout["actions"]).sum(-1) - rollout["logprobs"]).exp()
             clipped = ratio.clamp(1 - eps, 1 + eps) * advantages
-            rows.append((float(a), (ratio * advantages).mean().item(), clipped.mean().item(),
-                         torch.min(ratio * advantages, clipped).mean().item(), kl_divergence(pi_old, pi).sum(-1).mean().item()))  # fmt: skip
+            rows.append(
+                (
+                    float(a),
+                    (ratio * advantages).mean().item(),
+                    clipped.mean().item(),
+                    torch.min(ratio * advantages, clipped).mean().item(),
+                    kl_divergence(pi_old, pi).sum(-1).mean().item(),
+                )
+            )
         before.load_state_dict(old, strict=False)
     return rows
 
@@ -132,8 +141,12 @@ def main():
     rows = interpolate(alphas, seed=args.seed)
     OUT.mkdir(parents=True, exist_ok=True)
     with open(OUT / "figure2.csv", "w", newline="") as f:
-        f.write(f"# command: python benchmarks/figure2.py --seed {args.seed} --max-alpha {args.max_alpha} --points {args.points}\n")
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+        f.write(
+            f"# command: python benchmarks/figure2.py --seed {args.seed} --max-alpha {args.max_alpha} --points {args.points}\n"
+        )
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
+        ).stdout.strip()
         f.write(f"# commit: {commit or 'unknown'}\n# versions: {versions()}\n# machine: {machine()}\n")
         writer = csv.writer(f)
         writer.writerow(["alpha", "L_CPI", "clipped_term", "L_CLIP", "mean_KL"])
@@ -141,7 +154,9 @@ def main():
     plot(rows, OUT / "figure2.png")
     peak = max(rows, key=lambda row: row[3])
     at_one = min(rows, key=lambda row: abs(row[0] - 1.0))
-    print(f"wrote {OUT / 'figure2.csv'} and figure2.png: L^CLIP peaks at a = {peak[0]:.2f}; the update's mean KL is {at_one[4]:.4f}")
+    print(
+        f"wrote {OUT / 'figure2.csv'} and figure2.png: L^CLIP peaks at a = {peak[0]:.2f}; the update's mean KL is {at_one[4]:.4f}"
+    )
 
 
 if __name__ == "__main__":

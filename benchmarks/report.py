@@ -36,12 +36,20 @@ RESULTS = ROOT / "benchmarks" / "results"
 REFERENCE = ROOT / "benchmarks" / "reference_figures.csv"
 # The published per-env figures each kind of suite shows: (column in the data file, heading, setting).
 COLUMNS = {
-    "mujoco": [("paper_fig3", "paper, Fig. 3 (approx.)", "clip0.2"), ("cleanrl_1M", "CleanRL 1M (-v4)", "clip0.2"),
-               ("baselines_ppo2_1M", "baselines ppo2 1M", "clip0.2")],
-    "table1": [("paper_fig3", "paper, Fig. 3 (approx.; clip 0.2)", "clip0.2"), ("cleanrl_1M", "CleanRL 1M (-v4; clip 0.2)", "clip0.2")],
-    "atari": [("paper_table6", "paper, Table 6: last 100 at 10M steps (10x our budget)", "default"),
-              ("cleanrl_atari_10M", "CleanRL: last 100 at 10M steps (10x our budget)", "default")],
-}  # fmt: skip
+    "mujoco": [
+        ("paper_fig3", "paper, Fig. 3 (approx.)", "clip0.2"),
+        ("cleanrl_1M", "CleanRL 1M (-v4)", "clip0.2"),
+        ("baselines_ppo2_1M", "baselines ppo2 1M", "clip0.2"),
+    ],
+    "table1": [
+        ("paper_fig3", "paper, Fig. 3 (approx.; clip 0.2)", "clip0.2"),
+        ("cleanrl_1M", "CleanRL 1M (-v4; clip 0.2)", "clip0.2"),
+    ],
+    "atari": [
+        ("paper_table6", "paper, Table 6: last 100 at 10M steps (10x our budget)", "default"),
+        ("cleanrl_atari_10M", "CleanRL: last 100 at 10M steps (10x our budget)", "default"),
+    ],
+}
 # What each Atari variant is, for the table's headings.
 ATARI_NAMES = {"ppo": "ours", "sb3": "SB3 PPO (RL Zoo)", "default": "ours, before the issue-14 fixes"}
 
@@ -64,10 +72,14 @@ def env_base(env_id):
     return env_id.split("-v")[0].replace("NoFrameskip", "").removeprefix("ALE/")
 
 
-SCORE_RULE = ("A run's score is the mean return of its last 100 episodes; a cell is the mean ± sample std over seeds,"
-              " with the number of seeds in brackets.")
-MUJOCO_VERSIONS = ("Our MuJoCo tasks are gymnasium's -v5 where the env column does not name another version"
-                   " (the paper used gym's -v1, CleanRL -v4).")
+SCORE_RULE = (
+    "A run's score is the mean return of its last 100 episodes; a cell is the mean ± sample std over seeds,"
+    " with the number of seeds in brackets."
+)
+MUJOCO_VERSIONS = (
+    "Our MuJoCo tasks are gymnasium's -v5 where the env column does not name another version"
+    " (the paper used gym's -v1, CleanRL -v4)."
+)
 
 
 def run_files(folder):
@@ -91,7 +103,11 @@ def load_reference(path=REFERENCE):
     with open(path) as f:
         reader = csv.DictReader(line for line in f if not line.startswith("#"))
         return {
-            (r["column"], r["env"], r["setting"]): (float(r["score"]), float(r["std"]) if r["std"] else None, r["source"])
+            (r["column"], r["env"], r["setting"]): (
+                float(r["score"]),
+                float(r["std"]) if r["std"] else None,
+                r["source"],
+            )
             for r in reader
         }
 
@@ -102,7 +118,9 @@ def random_score(env_id, results=RESULTS):
     if not path.exists():
         return None
     with open(path) as f:
-        return statistics.mean(float(r["episodic_return"]) for r in csv.DictReader(line for line in f if not line.startswith("#")))
+        return statistics.mean(
+            float(r["episodic_return"]) for r in csv.DictReader(line for line in f if not line.startswith("#"))
+        )
 
 
 def mean_std(values):
@@ -128,7 +146,10 @@ def normalized_scores(runs, random):
     variants = sorted({run.variant for run in runs})
     envs = sorted(env for env, row in by_env.items() if all(v in row for v in variants) and random.get(env) is not None)
     best_of = {env: max(variants, key=lambda v: statistics.mean(r.score for r in by_env[env][v])) for env in envs}
-    pooled = {v: [x for xs in per_env.values() for x in xs] for v, per_env in normalized_runs(runs, random, envs, best_of).items()}
+    pooled = {
+        v: [x for xs in per_env.values() for x in xs]
+        for v, per_env in normalized_runs(runs, random, envs, best_of).items()
+    }
     return {v: (statistics.mean(s), len(s)) for v, s in pooled.items()}, envs, best_of
 
 
@@ -158,7 +179,9 @@ def standard_errors(runs, random, envs, best_of):
     out = {}
     for v, per_env in normalized_runs(runs, random, envs, best_of).items():
         if all(len(xs) > 1 for xs in per_env.values()):
-            out[v] = math.sqrt(sum(len(xs) * statistics.variance(xs) for xs in per_env.values())) / sum(map(len, per_env.values()))
+            out[v] = math.sqrt(sum(len(xs) * statistics.variance(xs) for xs in per_env.values())) / sum(
+                map(len, per_env.values())
+            )
     return out
 
 
@@ -195,17 +218,26 @@ def verdict(norm, rows, se=None):
         return f"by {d:.2f} ± {e:.2f}" + (" (within 2 standard errors)" if noise[-1] else "")
 
     parts = [
-        f"clip 0.2 is the best of the 11 rows, ahead of {runner_up} {gap('clip0.2', runner_up)}" if best == "clip0.2"
+        f"clip 0.2 is the best of the 11 rows, ahead of {runner_up} {gap('clip0.2', runner_up)}"
+        if best == "clip0.2"
         else f"clip 0.2 ({score['clip0.2']:.2f}) is not the best row: {best} is ({score[best]:.2f}), ahead {gap(best, 'clip0.2')}",
-        f"no clipping or penalty is the worst, behind {second_worst} {gap(second_worst, 'no-clip')}" if worst == "no-clip"
+        f"no clipping or penalty is the worst, behind {second_worst} {gap(second_worst, 'no-clip')}"
+        if worst == "no-clip"
         else f"no clipping ({score['no-clip']:.2f}) is not the worst row: {worst} is ({score[worst]:.2f}), behind it {gap('no-clip', worst)}",
         f"every adaptive KL row is below clip 0.2: the best, {best_kl} ({score[best_kl]:.2f}), is behind it {gap('clip0.2', best_kl)}"
-        if score[best_kl] < score["clip0.2"] else f"adaptive KL {best_kl} ({score[best_kl]:.2f}) is not below clip 0.2 ({score['clip0.2']:.2f}): it is ahead {gap(best_kl, 'clip0.2')}",
-    ]  # fmt: skip
+        if score[best_kl] < score["clip0.2"]
+        else f"adaptive KL {best_kl} ({score[best_kl]:.2f}) is not below clip 0.2 ({score['clip0.2']:.2f}): it is ahead {gap(best_kl, 'clip0.2')}",
+    ]
     holds = best == "clip0.2" and worst == "no-clip" and score[best_kl] < score["clip0.2"]
-    text = f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:** " + "; ".join(parts) + "."
+    text = (
+        f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:** "
+        + "; ".join(parts)
+        + "."
+    )
     if noise:  # a gap has a standard error
-        text += " ± is the standard error over seeds" + ("; a gap within twice it is one these seeds cannot settle." if any(noise) else ".")
+        text += " ± is the standard error over seeds" + (
+            "; a gap within twice it is one these seeds cannot settle." if any(noise) else "."
+        )
     return text
 
 
@@ -219,6 +251,7 @@ def fmt(mean, std=None):
 
 def provenance(runs):
     """The lines every table carries: seeds, budget, commits, versions, machines."""
+
     def values(key):
         return "; ".join(sorted({r.meta.get(key, "not recorded") for r in runs}))
 
@@ -230,7 +263,11 @@ def provenance(runs):
         f"- Commits: {values('commit')}.",
         f"- Versions: {values('versions')}.",
         f"- Machine: {values('machine')}.",
-        *([f"- Wall time: {sum(wall) / 3600:.1f} h in all, {statistics.mean(wall) / 60:.0f} min per run on average."] if wall else []),
+        *(
+            [f"- Wall time: {sum(wall) / 3600:.1f} h in all, {statistics.mean(wall) / 60:.0f} min per run on average."]
+            if wall
+            else []
+        ),
     ]
 
 
@@ -285,13 +322,17 @@ def best_window(rows, window=100):
 
 
 def run_table(runs):
-    lines = ["| env | variant | seed | steps | episodes | score | best 100 episodes (at step) | wall time | commit | beta range |",
-             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = [
+        "| env | variant | seed | steps | episodes | score | best 100 episodes (at step) | wall time | commit | beta range |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in sorted(runs, key=lambda r: (r.env_id, r.variant, r.seed)):
         wall = f"{float(r.meta['wall_time_s']) / 60:.0f} min" if "wall_time_s" in r.meta else "–"
         best, at = best_window(r.rows)
-        lines.append(f"| {r.env_id} | {r.variant} | {r.seed} | {int(r.meta['global_step']):,} | {len(r.rows)} | {fmt(r.score)}"
-                     f" | {fmt(best)} ({at:,}) | {wall} | {r.meta.get('commit', '–')} | {r.meta.get('beta_range', '–')} |")  # fmt: skip
+        lines.append(
+            f"| {r.env_id} | {r.variant} | {r.seed} | {int(r.meta['global_step']):,} | {len(r.rows)} | {fmt(r.score)}"
+            f" | {fmt(best)} ({at:,}) | {wall} | {r.meta.get('commit', '–')} | {r.meta.get('beta_range', '–')} |"
+        )
     return lines
 
 
@@ -335,15 +376,38 @@ def tables(folder, runs, reference, results, level="##"):
             n = sum(r.variant == v for r in runs)
             missing = "not run" if not n else f"not on every env yet ({n} run{'s' if n > 1 else ''})"
             ours_text = ours and f"{ours[0]:.2f}" + (f" ± {errors[v]:.2f}" if v in errors else "")
-            lines.append(f"| {v} | {ours_text} | {ours[1]} | {paper[0]:.2f} |" if ours else f"| {v} | {missing} | – | {paper[0]:.2f} |")
+            lines.append(
+                f"| {v} | {ours_text} | {ours[1]} | {paper[0]:.2f} |"
+                if ours
+                else f"| {v} | {missing} | – | {paper[0]:.2f} |"
+            )
         rows = suite_variants("table1")
-        text = verdict(norm, rows, errors) if complete(runs, rows) else None  # not on a partial grid, whose scores rest on fewer envs or seeds
+        text = (
+            verdict(norm, rows, errors) if complete(runs, rows) else None
+        )  # not on a partial grid, whose scores rest on fewer envs or seeds
         grid = len(rows) * len(envs) * len({r.seed for r in runs})
-        over = "" if set(norm_envs) == set(envs) else f" Until then the scores are over {', '.join(norm_envs) or 'no env'}, where every row run so far has run."
-        lines += ["", text or f"The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping) waits for all 11 rows on every env and seed: {sum(r.variant in rows for r in runs)} of {grid} runs are in.{over}"]
+        over = (
+            ""
+            if set(norm_envs) == set(envs)
+            else f" Until then the scores are over {', '.join(norm_envs) or 'no env'}, where every row run so far has run."
+        )
+        lines += [
+            "",
+            text
+            or f"The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping) waits for all 11 rows on every env and seed: {sum(r.variant in rows for r in runs)} of {grid} runs are in.{over}",
+        ]
         by_env = normalized_by_env(runs, random, norm_envs, best_of) if norm_envs else {}
-        lines += [] if not by_env else ["", "Per env (normalized score, runs), and the commits each setting's runs were made at:", "",
-                  "| setting | " + " | ".join(norm_envs) + " | commits |", "|---" * (len(norm_envs) + 2) + "|"]  # fmt: skip
+        lines += (
+            []
+            if not by_env
+            else [
+                "",
+                "Per env (normalized score, runs), and the commits each setting's runs were made at:",
+                "",
+                "| setting | " + " | ".join(norm_envs) + " | commits |",
+                "|---" * (len(norm_envs) + 2) + "|",
+            ]
+        )
         for v in [v for v in suite_variants("table1") if v in by_env]:
             commits = ", ".join(sorted({r.meta.get("commit", "?") for r in runs if r.variant == v}))
             cells = [f"{by_env[v][env][0]:.2f} ({by_env[v][env][1]})" if env in by_env[v] else "–" for env in norm_envs]
@@ -355,7 +419,9 @@ def tables(folder, runs, reference, results, level="##"):
     if kind == "atari":
         return lines + atari_table(runs, reference, variants, results)
     lines += score_table(runs, reference, COLUMNS[kind], variants, results)
-    if kind == "mujoco" and len(variants) > 1:  # a suite that tests changes against a default: shortfalls, beta_collapse
+    if (
+        kind == "mujoco" and len(variants) > 1
+    ):  # a suite that tests changes against a default: shortfalls, beta_collapse
         lines += comparison(runs, reference, variants)
     return lines
 
@@ -365,12 +431,19 @@ def comparison(runs, reference, variants):
     the mean scores with its standard error, and whether the setting reaches the paper's figure. An older version of
     an env (IDP-v4 beside IDP-v5) is compared with the same default on the newest."""
     base, by_env = variants[0], group(runs)
-    lines = ["", f"Against `{base}` on the env's newest version: the difference of the mean scores ± its standard error,"
-             " sqrt(s1²/n1 + s2²/n2); **bold** where the difference is more than twice that. With 3 seeds a side this is"
-             " a rough guide, not a test.", "",
-             f"| env | setting | score (n) | difference from {base} | reaches the paper's Fig. 3 (clip 0.2, approx.) |", "|---|---|---|---|---|"]  # fmt: skip
+    lines = [
+        "",
+        f"Against `{base}` on the env's newest version: the difference of the mean scores ± its standard error,"
+        " sqrt(s1²/n1 + s2²/n2); **bold** where the difference is more than twice that. With 3 seeds a side this is"
+        " a rough guide, not a test.",
+        "",
+        f"| env | setting | score (n) | difference from {base} | reaches the paper's Fig. 3 (clip 0.2, approx.) |",
+        "|---|---|---|---|---|",
+    ]
     for name in sorted({env_base(env) for env in by_env}):
-        envs = sorted((env for env in by_env if env_base(env) == name), key=lambda env: int(env.rsplit("-v", 1)[1]), reverse=True)
+        envs = sorted(
+            (env for env in by_env if env_base(env) == name), key=lambda env: int(env.rsplit("-v", 1)[1]), reverse=True
+        )
         paper = reference.get(("paper_fig3", name, "clip0.2"))
         base_scores = [r.score for r in by_env[envs[0]].get(base, [])]
         for env in envs:
@@ -379,9 +452,13 @@ def comparison(runs, reference, variants):
                 diff = "–"
                 if (env, v) != (envs[0], base) and len(scores) > 1 and len(base_scores) > 1:
                     d = statistics.mean(scores) - statistics.mean(base_scores)
-                    se = math.sqrt(statistics.variance(scores) / len(scores) + statistics.variance(base_scores) / len(base_scores))
+                    se = math.sqrt(
+                        statistics.variance(scores) / len(scores) + statistics.variance(base_scores) / len(base_scores)
+                    )
                     diff = f"**{d:+,.1f} ± {se:,.1f}**" if abs(d) > 2 * se else f"{d:+,.1f} ± {se:,.1f}"
-                reached = "–" if not paper else f"{'yes' if statistics.mean(scores) >= paper[0] else 'no'} ({fmt(paper[0])})"
+                reached = (
+                    "–" if not paper else f"{'yes' if statistics.mean(scores) >= paper[0] else 'no'} ({fmt(paper[0])})"
+                )
                 lines.append(f"| {env} | {v} | {fmt(*mean_std(scores))} ({len(scores)}) | {diff} | {reached} |")
     return lines
 
@@ -419,9 +496,13 @@ def atari_table(runs, reference, variants, results):
     for v in variants:
         wall = [float(r.meta["wall_time_s"]) for r in runs if r.variant == v and "wall_time_s" in r.meta]
         if wall:
-            lines.append(f"- {ATARI_NAMES.get(v, v)}: a run took {statistics.mean(wall) / 60:.0f} min of wall time on average here"
-                         f" ({len(wall)} run{'s' if len(wall) > 1 else ''}; other work may have shared the machine).")  # fmt: skip
-    lines.append("- The paper's budget, 10M steps, on a GPU (not yet tested on one here): `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`.")
+            lines.append(
+                f"- {ATARI_NAMES.get(v, v)}: a run took {statistics.mean(wall) / 60:.0f} min of wall time on average here"
+                f" ({len(wall)} run{'s' if len(wall) > 1 else ''}; other work may have shared the machine)."
+            )
+    lines.append(
+        "- The paper's budget, 10M steps, on a GPU (not yet tested on one here): `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`."
+    )
     return lines
 
 
@@ -454,7 +535,9 @@ def report(folder, reference=None, results=RESULTS):
         png = plot_env(folder, env, [r for r in runs if r.env_id == env], variants)
         lines.append(f"![{env}](curves/{png.name})")
     lines += beta_section(folder)
-    if kind == "mujoco" and len(suite_variants(suite_name(folder))) > 1:  # the suites that look for a cause: shortfalls, beta_collapse
+    if (
+        kind == "mujoco" and len(suite_variants(suite_name(folder))) > 1
+    ):  # the suites that look for a cause: shortfalls, beta_collapse
         lines += updates_section(folder, variants)
     lines += ["", "## Every run", "", *run_table(runs)]
     text = "\n".join(lines) + "\n"
@@ -475,22 +558,33 @@ def readme_block(results=RESULTS, reference=None, full=False):
     for folder in suite_folders(results):
         runs = load_runs(folder)
         # Links are relative to the README that holds the block: README.md at the root, benchmarks/README.md.
-        rel = folder.relative_to(ROOT / ("benchmarks" if full else "")).as_posix() if folder.is_relative_to(ROOT) else folder.name
+        rel = (
+            folder.relative_to(ROOT / ("benchmarks" if full else "")).as_posix()
+            if folder.is_relative_to(ROOT)
+            else folder.name
+        )
         seeds = ", ".join(map(str, sorted({r.seed for r in runs})))
         steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in runs}))
         heading = f"`{folder.name}`: {len(runs)} run{'s' if len(runs) > 1 else ''} (seeds {seeds}; {steps} steps each)"
         if full:
             lines += [
-                "", f"### {heading}", "",
-                f"Commits, versions, machine, each run's score and the sources: [`{rel}/report.md`]({rel}/report.md).", "",
-                *tables(folder, runs, reference, results, level="####"), "",
-                " ".join(f'<img src="{rel}/curves/{env.replace("/", "-")}.png" width="32%">' for env in sorted({r.env_id for r in runs})),
-            ]  # fmt: skip
+                "",
+                f"### {heading}",
+                "",
+                f"Commits, versions, machine, each run's score and the sources: [`{rel}/report.md`]({rel}/report.md).",
+                "",
+                *tables(folder, runs, reference, results, level="####"),
+                "",
+                " ".join(
+                    f'<img src="{rel}/curves/{env.replace("/", "-")}.png" width="32%">'
+                    for env in sorted({r.env_id for r in runs})
+                ),
+            ]
         elif folder.name in COLUMNS:  # the short summary: each suite at its own budget, one table each
             kind = suite_kind(folder)
             table = tables(folder, runs, reference, results, level="####")
             if kind == "table1":  # just the normalized score, the paper's Table 1, and the verdict on its order
-                table = table[table.index("| setting | ours: normalized score | runs | paper, Table 1 |"):]
+                table = table[table.index("| setting | ours: normalized score | runs | paper, Table 1 |") :]
                 table = table[: table.index("") + 2]
             lines += ["", f"**{heading}** ([report]({rel}/report.md))", "", *table]
     return "\n".join(lines + ["", README_END])
@@ -506,7 +600,12 @@ def cost_block(results=RESULTS):
     """What the full Table 1 costs, from the wall time of the 1M-step MuJoCo runs made here (each on one core)."""
     from run import SUITES, make_grid
 
-    runs = [r for folder in ("mujoco", "table1") if (Path(results) / folder).is_dir() for r in load_runs(Path(results) / folder)]
+    runs = [
+        r
+        for folder in ("mujoco", "table1")
+        if (Path(results) / folder).is_dir()
+        for r in load_runs(Path(results) / folder)
+    ]
     minutes = [float(r.meta["wall_time_s"]) / 60 for r in runs if "wall_time_s" in r.meta]
     full = make_grid("table1", results_root=results)  # the paper's 7 envs
     ours = make_grid("table1", envs=TABLE1_ENVS, results_root=results)
@@ -514,15 +613,23 @@ def cost_block(results=RESULTS):
     if minutes:
         per_run = statistics.mean(minutes)
         todo = sum(not job.csv.exists() for job in ours)
-        lines += [f"A 1M-step MuJoCo run took {per_run:.0f} min of wall time on one core here, on average over {len(minutes)} runs."
-                  f" Table 1 as the paper ran it, {len(full)} runs ({len(SUITES['table1'].variants)} rows x 7 envs x 3 seeds), is then"
-                  f" about {len(full) * per_run / 60:.0f} CPU-hours; on our 4 envs ({', '.join(TABLE1_ENVS)}) it is {len(ours)} runs,"
-                  f" about {len(ours) * per_run / 60:.0f} CPU-hours, "
-                  + (f"of which {todo} run{'s are' if todo > 1 else ' is'} not done yet ({todo * per_run / 60:.0f} CPU-hours)." if todo else "all of them done.")]  # fmt: skip
+        lines += [
+            f"A 1M-step MuJoCo run took {per_run:.0f} min of wall time on one core here, on average over {len(minutes)} runs."
+            f" Table 1 as the paper ran it, {len(full)} runs ({len(SUITES['table1'].variants)} rows x 7 envs x 3 seeds), is then"
+            f" about {len(full) * per_run / 60:.0f} CPU-hours; on our 4 envs ({', '.join(TABLE1_ENVS)}) it is {len(ours)} runs,"
+            f" about {len(ours) * per_run / 60:.0f} CPU-hours, "
+            + (
+                f"of which {todo} run{'s are' if todo > 1 else ' is'} not done yet ({todo * per_run / 60:.0f} CPU-hours)."
+                if todo
+                else "all of them done."
+            )
+        ]
     return "\n".join(lines + ["", COST_END])
 
 
-QUICK_START = "<!-- quick start: generated by benchmarks/report.py from benchmarks/results/mujoco; do not edit by hand -->"
+QUICK_START = (
+    "<!-- quick start: generated by benchmarks/report.py from benchmarks/results/mujoco; do not edit by hand -->"
+)
 QUICK_END = "<!-- end of quick start -->"
 
 
@@ -530,14 +637,18 @@ def quickstart_block(results=RESULTS):
     """What the README's quick start promises (how long `python ppo_continuous.py` takes and where it ends),
     from the mujoco suite's Hopper-v5 runs: the same script, env, budget and settings."""
     folder = Path(results) / "mujoco"
-    runs = [r for r in load_runs(folder) if r.env_id == "Hopper-v5" and r.variant == "clip0.2"] if folder.is_dir() else []
+    runs = (
+        [r for r in load_runs(folder) if r.env_id == "Hopper-v5" and r.variant == "clip0.2"] if folder.is_dir() else []
+    )
     minutes = sorted(float(r.meta["wall_time_s"]) / 60 for r in runs if "wall_time_s" in r.meta)
     scores = sorted(r.score for r in runs)
     if not (runs and minutes):
         return "\n".join([QUICK_START, "- **Training**: no benchmark run of Hopper-v5 is committed yet.", QUICK_END])
-    line = (f"- **Training** took {minutes[0]:.0f}–{minutes[-1]:.0f} min per run for the benchmarks, on one core of a 2-core"
-            f" machine, and ended with a mean return of {scores[0]:,.0f}–{scores[-1]:,.0f} over the last 100 episodes"
-            f" ({len(runs)} seeds; see [Results](#results)).")
+    line = (
+        f"- **Training** took {minutes[0]:.0f}–{minutes[-1]:.0f} min per run for the benchmarks, on one core of a 2-core"
+        f" machine, and ended with a mean return of {scores[0]:,.0f}–{scores[-1]:,.0f} over the last 100 episodes"
+        f" ({len(runs)} seeds; see [Results](#results))."
+    )
     return "\n".join([QUICK_START, line, QUICK_END])
 
 
@@ -607,7 +718,9 @@ def read_beta(folder):
     out = {}
     for env_id, variant, seed, path in run_files(Path(folder) / "beta"):
         with open(path) as f:
-            out[env_id, variant, seed] = [(int(r["global_step"]), float(r["beta"]), float(r["kl"])) for r in csv.DictReader(f)]
+            out[env_id, variant, seed] = [
+                (int(r["global_step"]), float(r["beta"]), float(r["kl"])) for r in csv.DictReader(f)
+            ]
     return out
 
 
@@ -637,15 +750,20 @@ def beta_section(folder):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    lines = ["", "## Beta over training (adaptive KL)", "",
-             "From the beta each update used (`losses/beta`). The rule halves beta after each update whose KL is below",
-             "d_targ / 1.5. As the learning rate anneals linearly to 0, the last updates are too small to reach that,",
-             "and beta halves again and again: the halvings column counts the halvings in a row that end each run.",
-             "The last two columns bound what the last 10% of the steps did to the score: the mean return of the last",
-             "100 episodes at 90% of the steps, and at the end (the run's score), averaged over the seeds.", "",
-             "| env | setting | seeds | median beta, first 90% of updates | beta at the end | updates in the last 10% with KL < d_targ / 1.5"
-             " | final run of updates with KL < d_targ / 1.5 | score at 90% of the steps | score at the end |",
-             "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = [
+        "",
+        "## Beta over training (adaptive KL)",
+        "",
+        "From the beta each update used (`losses/beta`). The rule halves beta after each update whose KL is below",
+        "d_targ / 1.5. As the learning rate anneals linearly to 0, the last updates are too small to reach that,",
+        "and beta halves again and again: the halvings column counts the halvings in a row that end each run.",
+        "The last two columns bound what the last 10% of the steps did to the score: the mean return of the last",
+        "100 episodes at 90% of the steps, and at the end (the run's score), averaged over the seeds.",
+        "",
+        "| env | setting | seeds | median beta, first 90% of updates | beta at the end | updates in the last 10% with KL < d_targ / 1.5"
+        " | final run of updates with KL < d_targ / 1.5 | score at 90% of the steps | score at the end |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for env in sorted({key[0] for key in series}):
         fig, ax = plt.subplots(figsize=(6, 3.4))
         for (e, variant, seed), rows in sorted(series.items()):
@@ -668,12 +786,21 @@ def beta_section(folder):
             cut = [int(0.9 * len(rows)) for rows in betas]
             early = statistics.mean(statistics.median(r[1] for r in rows[:c]) for rows, c in zip(betas, cut))
             end = statistics.mean(rows[-1][1] for rows in betas)
-            low = statistics.mean(statistics.mean(r[2] < kl for r in rows[c:]) for rows, c, kl in zip(betas, cut, low_kl))
-            streak = [next((i for i, r in enumerate(reversed(rows)) if r[2] >= kl), len(rows)) for rows, kl in zip(betas, low_kl)]
-            before = statistics.mean(curve(runs[key].rows, [0.9 * int(runs[key].meta["global_step"])])[0] for key in keys)
+            low = statistics.mean(
+                statistics.mean(r[2] < kl for r in rows[c:]) for rows, c, kl in zip(betas, cut, low_kl)
+            )
+            streak = [
+                next((i for i, r in enumerate(reversed(rows)) if r[2] >= kl), len(rows))
+                for rows, kl in zip(betas, low_kl)
+            ]
+            before = statistics.mean(
+                curve(runs[key].rows, [0.9 * int(runs[key].meta["global_step"])])[0] for key in keys
+            )
             after = statistics.mean(runs[key].score for key in keys)
-            lines.append(f"| {env} | {variant} | {len(keys)} | {early:.3g} | {end:.3g} | {low:.0%} | {', '.join(map(str, streak))}"
-                         f" | {fmt(before)} | {fmt(after)} |")
+            lines.append(
+                f"| {env} | {variant} | {len(keys)} | {early:.3g} | {end:.3g} | {low:.0%} | {', '.join(map(str, streak))}"
+                f" | {fmt(before)} | {fmt(after)} |"
+            )
     lines += [""] + [f"![beta, {env}](curves/beta-{env}.png)" for env in sorted({key[0] for key in series})]
     return lines
 
@@ -691,28 +818,46 @@ def updates_section(folder, variants):
             stats.setdefault((env_id, variant), []).append((runs[env_id, variant, seed], rows))
     if not stats:
         return []
-    lines = ["", "## The updates over training", "",
-             "The return (the mean of the last 100 episodes) at the end of each tenth of the steps, and under it each",
-             "update's statistics as the script logs them (`losses/*`, see the README's Logged metrics) averaged over",
-             "that tenth of the updates; each the mean over the seeds (their number in brackets). An explained variance",
-             "below 0 means that the value function predicts the batch's returns worse than their mean does, so that the",
-             "advantages are mostly its error.", "",
-             "| env | setting | statistic | " + " | ".join(f"{10 * i}–{10 * i + 10}%" for i in range(10)) + " |", "|---" * 13 + "|"]  # fmt: skip
+    lines = [
+        "",
+        "## The updates over training",
+        "",
+        "The return (the mean of the last 100 episodes) at the end of each tenth of the steps, and under it each",
+        "update's statistics as the script logs them (`losses/*`, see the README's Logged metrics) averaged over",
+        "that tenth of the updates; each the mean over the seeds (their number in brackets). An explained variance",
+        "below 0 means that the value function predicts the batch's returns worse than their mean does, so that the",
+        "advantages are mostly its error.",
+        "",
+        "| env | setting | statistic | " + " | ".join(f"{10 * i}–{10 * i + 10}%" for i in range(10)) + " |",
+        "|---" * 13 + "|",
+    ]
     order = {v: i for i, v in enumerate(variants)}
     for env, variant in sorted(stats, key=lambda key: (key[0], order.get(key[1], len(order)), key[1])):
         pairs = stats[env, variant]
-        returns = [statistics.mean(curve(run.rows, [int(run.meta["global_step"]) * (i + 1) / 10])[0] for run, _ in pairs) for i in range(10)]
+        returns = [
+            statistics.mean(curve(run.rows, [int(run.meta["global_step"]) * (i + 1) / 10])[0] for run, _ in pairs)
+            for i in range(10)
+        ]
         lines.append(f"| {env} | {variant} ({len(pairs)}) | return | " + " | ".join(fmt(x) for x in returns) + " |")
         for j, name in enumerate(UPDATE_STATS, start=1):
-            tenths = [statistics.mean(statistics.mean(r[j] for r in rows[len(rows) * i // 10 : len(rows) * (i + 1) // 10]) for _, rows in pairs)
-                      for i in range(10)]  # fmt: skip
-            lines.append(f"| {env} | {variant} ({len(pairs)}) | {name} | " + " | ".join(f"{x:.3g}" for x in tenths) + " |")
+            tenths = [
+                statistics.mean(
+                    statistics.mean(r[j] for r in rows[len(rows) * i // 10 : len(rows) * (i + 1) // 10])
+                    for _, rows in pairs
+                )
+                for i in range(10)
+            ]
+            lines.append(
+                f"| {env} | {variant} ({len(pairs)}) | {name} | " + " | ".join(f"{x:.3g}" for x in tenths) + " |"
+            )
     return lines
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("suites", nargs="*", help="suite folders under benchmarks/results (default: every one with run CSVs)")
+    parser.add_argument(
+        "suites", nargs="*", help="suite folders under benchmarks/results (default: every one with run CSVs)"
+    )
     parser.add_argument("--results-dir", type=Path, default=RESULTS)
     args = parser.parse_args()
     folders = [args.results_dir / s for s in args.suites] or suite_folders(args.results_dir)

@@ -38,7 +38,15 @@ from common import UPDATE_STATS, load_script, machine, read_run, score, versions
 # The paper's 7 MuJoCo tasks (§6.1 used gym's -v1), in today's -v5, except InvertedDoublePendulum: its -v5 pays no
 # healthy reward on the step that falls, unlike the paper's -v1, and -v4 keeps -v1's reward (the shortfalls suite
 # measured the difference; benchmarks/README.md).
-MUJOCO = ["HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v4", "InvertedPendulum-v5", "Reacher-v5", "Swimmer-v5", "Walker2d-v5"]
+MUJOCO = [
+    "HalfCheetah-v5",
+    "Hopper-v5",
+    "InvertedDoublePendulum-v4",
+    "InvertedPendulum-v5",
+    "Reacher-v5",
+    "Swimmer-v5",
+    "Walker2d-v5",
+]
 
 
 @dataclass
@@ -48,44 +56,76 @@ class Suite:
     seeds: list[int]
     total_timesteps: int
     about: str = ""
-    only: dict[str, tuple[list[str], list[int]]] = field(default_factory=dict)  # variant -> the envs and seeds it runs on
+    only: dict[str, tuple[list[str], list[int]]] = field(
+        default_factory=dict
+    )  # variant -> the envs and seeds it runs on
 
 
 SUITES = {
-    "mujoco": Suite({"clip0.2": ("ppo_continuous.py", [])}, MUJOCO, [1, 2, 3], 1_000_000,
-                    "ppo_continuous.py defaults (the paper's Table 3, clip 0.2)"),
+    "mujoco": Suite(
+        {"clip0.2": ("ppo_continuous.py", [])},
+        MUJOCO,
+        [1, 2, 3],
+        1_000_000,
+        "ppo_continuous.py defaults (the paper's Table 3, clip 0.2)",
+    ),
     # Table 1: every row keeps the other hyperparameters at ppo_continuous.py's defaults. The KL rows
     # start at beta = 1, as the paper's did. "No clipping or penalty" is the KL script with beta 0.
-    "table1": Suite({
-        "no-clip": ("ppo_kl_penalty.py", ["--init-beta", "0", "--no-adaptive-beta"]),
-        "clip0.1": ("ppo_continuous.py", ["--clip-coef", "0.1"]),
-        "clip0.2": ("ppo_continuous.py", []),
-        "clip0.3": ("ppo_continuous.py", ["--clip-coef", "0.3"]),
-        "kl0.003": ("ppo_kl_penalty.py", ["--kl-target", "0.003"]),
-        "kl0.01": ("ppo_kl_penalty.py", []),
-        "kl0.03": ("ppo_kl_penalty.py", ["--kl-target", "0.03"]),
-        "beta0.3": ("ppo_kl_penalty.py", ["--init-beta", "0.3", "--no-adaptive-beta"]),
-        "beta1": ("ppo_kl_penalty.py", ["--init-beta", "1", "--no-adaptive-beta"]),
-        "beta3": ("ppo_kl_penalty.py", ["--init-beta", "3", "--no-adaptive-beta"]),
-        "beta10": ("ppo_kl_penalty.py", ["--init-beta", "10", "--no-adaptive-beta"]),
-    }, MUJOCO, [1, 2, 3], 1_000_000, "the paper's Table 1 rows; everything else at the scripts' defaults"),  # fmt: skip
+    "table1": Suite(
+        {
+            "no-clip": ("ppo_kl_penalty.py", ["--init-beta", "0", "--no-adaptive-beta"]),
+            "clip0.1": ("ppo_continuous.py", ["--clip-coef", "0.1"]),
+            "clip0.2": ("ppo_continuous.py", []),
+            "clip0.3": ("ppo_continuous.py", ["--clip-coef", "0.3"]),
+            "kl0.003": ("ppo_kl_penalty.py", ["--kl-target", "0.003"]),
+            "kl0.01": ("ppo_kl_penalty.py", []),
+            "kl0.03": ("ppo_kl_penalty.py", ["--kl-target", "0.03"]),
+            "beta0.3": ("ppo_kl_penalty.py", ["--init-beta", "0.3", "--no-adaptive-beta"]),
+            "beta1": ("ppo_kl_penalty.py", ["--init-beta", "1", "--no-adaptive-beta"]),
+            "beta3": ("ppo_kl_penalty.py", ["--init-beta", "3", "--no-adaptive-beta"]),
+            "beta10": ("ppo_kl_penalty.py", ["--init-beta", "10", "--no-adaptive-beta"]),
+        },
+        MUJOCO,
+        [1, 2, 3],
+        1_000_000,
+        "the paper's Table 1 rows; everything else at the scripts' defaults",
+    ),
     # Does the collapse of beta at the end of the adaptive-KL runs matter? The same row with the lr held constant.
-    "beta_collapse": Suite({"kl0.01": ("ppo_kl_penalty.py", []), "kl0.01-const-lr": ("ppo_kl_penalty.py", ["--no-anneal-lr"])},
-                           ["Hopper-v5"], [1, 2, 3], 1_000_000, "adaptive KL d_targ 0.01, with and without lr annealing"),
+    "beta_collapse": Suite(
+        {"kl0.01": ("ppo_kl_penalty.py", []), "kl0.01-const-lr": ("ppo_kl_penalty.py", ["--no-anneal-lr"])},
+        ["Hopper-v5"],
+        [1, 2, 3],
+        1_000_000,
+        "adaptive KL d_targ 0.01, with and without lr annealing",
+    ),
     # Why InvertedDoublePendulum-v5 and Swimmer fall short of the paper: three hypotheses against the default. The env's
     # version (the default on IDP-v4, the paper's -v1 task), lr annealing (on both), and the discount (on Swimmer).
-    "shortfalls": Suite({"clip0.2": ("ppo_continuous.py", []), "const-lr": ("ppo_continuous.py", ["--no-anneal-lr"]),
-                         "gamma0.999": ("ppo_continuous.py", ["--gamma", "0.999"])},
-                        ["InvertedDoublePendulum-v5", "Swimmer-v5", "InvertedDoublePendulum-v4"], [1, 2, 3], 1_000_000,
-                        "ppo_continuous.py defaults (also on IDP-v4), without lr annealing, and with gamma 0.999 on Swimmer",
-                        only={"const-lr": (["InvertedDoublePendulum-v5", "Swimmer-v5"], [1, 2, 3]), "gamma0.999": (["Swimmer-v5"], [1, 2, 3])}),
+    "shortfalls": Suite(
+        {
+            "clip0.2": ("ppo_continuous.py", []),
+            "const-lr": ("ppo_continuous.py", ["--no-anneal-lr"]),
+            "gamma0.999": ("ppo_continuous.py", ["--gamma", "0.999"]),
+        },
+        ["InvertedDoublePendulum-v5", "Swimmer-v5", "InvertedDoublePendulum-v4"],
+        [1, 2, 3],
+        1_000_000,
+        "ppo_continuous.py defaults (also on IDP-v4), without lr annealing, and with gamma 0.999 on Swimmer",
+        only={
+            "const-lr": (["InvertedDoublePendulum-v5", "Swimmer-v5"], [1, 2, 3]),
+            "gamma0.999": (["Swimmer-v5"], [1, 2, 3]),
+        },
+    ),
     # The paper trained Atari for 10M agent steps (40M frames); here 1M, a tenth. The peer at the same budget is
     # SB3's PPO with the RL Zoo's Atari hyperparameters, on two of the games with one seed.
-    "atari": Suite({"ppo": ("ppo_atari.py", ["--compile"]), "sb3": ("benchmarks/sb3_atari.py", [])},
-                   ["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4", "BeamRiderNoFrameskip-v4"], [1, 2, 3], 1_000_000,
-                   "ppo_atari.py defaults (the paper's Table 5) with --compile, alpha annealed over the budget; SB3's PPO (RL Zoo) beside it",
-                   only={"sb3": (["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4"], [1])}),
-}  # fmt: skip
+    "atari": Suite(
+        {"ppo": ("ppo_atari.py", ["--compile"]), "sb3": ("benchmarks/sb3_atari.py", [])},
+        ["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4", "BeamRiderNoFrameskip-v4"],
+        [1, 2, 3],
+        1_000_000,
+        "ppo_atari.py defaults (the paper's Table 5) with --compile, alpha annealed over the budget; SB3's PPO (RL Zoo) beside it",
+        only={"sb3": (["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4"], [1])},
+    ),
+}
 
 
 @dataclass
@@ -124,9 +164,22 @@ class Job:
 
     def command(self, save_every=None):
         """The command that starts this run from scratch, relative to the repository root."""
-        return (["python", self.script, *self.flags, "--env-id", self.env_id, "--seed", str(self.seed),
-                 "--total-timesteps", str(self.total_timesteps), "--torch-threads", "1",
-                 *(["--save-every", str(save_every)] if save_every else []), "--run-dir", str(_rel(self.run_dir))])  # fmt: skip
+        return [
+            "python",
+            self.script,
+            *self.flags,
+            "--env-id",
+            self.env_id,
+            "--seed",
+            str(self.seed),
+            "--total-timesteps",
+            str(self.total_timesteps),
+            "--torch-threads",
+            "1",
+            *(["--save-every", str(save_every)] if save_every else []),
+            "--run-dir",
+            str(_rel(self.run_dir)),
+        ]
 
 
 def _rel(path):
@@ -165,7 +218,8 @@ def make_grid(suite, variants=None, envs=None, seeds=None, total_timesteps=None,
         for variant in (variants or spec.variants)
         for env in (envs or spec.envs)
         for seed in (seeds or spec.seeds)
-        if variant not in spec.only or (resolve_env(env, spec.envs) in spec.only[variant][0] and seed in spec.only[variant][1])
+        if variant not in spec.only
+        or (resolve_env(env, spec.envs) in spec.only[variant][0] and seed in spec.only[variant][1])
     ]
 
 
@@ -185,7 +239,9 @@ def check_grid(jobs):
         try:
             args = tyro.cli(module.Args, args=argv, console_outputs=False)
         except SystemExit:
-            raise ValueError(f"{job.script} does not accept the flags {shlex.join(job.flags)} (variant {job.variant})") from None
+            raise ValueError(
+                f"{job.script} does not accept the flags {shlex.join(job.flags)} (variant {job.variant})"
+            ) from None
         try:
             module.check_args(args)
         except ValueError as e:
@@ -214,7 +270,9 @@ def commit_of(script):
 def log_attempt(job, started, commit, elapsed, returncode, resumed):
     """One line per process a run took: when, at which commit, how long, and how it ended."""
     with open(job.run_dir / "attempts.txt", "a") as f:
-        f.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S', time.gmtime(started))}\t{commit}\t{elapsed:.0f}\t{returncode}\t{'resume' if resumed else 'start'}\n")
+        f.write(
+            f"{time.strftime('%Y-%m-%dT%H:%M:%S', time.gmtime(started))}\t{commit}\t{elapsed:.0f}\t{returncode}\t{'resume' if resumed else 'start'}\n"
+        )
 
 
 def read_attempts(job):
@@ -227,7 +285,9 @@ def read_attempts(job):
 def write_series(path, columns, rows):
     """A per-iteration series as a CSV: global_step (exact) and then the columns (6 significant digits)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    lines = [",".join(("global_step", *columns))] + [",".join((f"{step:.0f}", *(f"{x:.6g}" for x in rest))) for step, *rest in rows]
+    lines = [",".join(("global_step", *columns))] + [
+        ",".join((f"{step:.0f}", *(f"{x:.6g}" for x in rest))) for step, *rest in rows
+    ]
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -238,12 +298,32 @@ def finish(job):
     commits = sorted({a[1] for a in attempts}) or ["unknown"]  # every attempt may have added steps
     wall = sum(float(a[2]) for a in attempts)
     header = [
-        ("command", shlex.join(job.command())), ("suite", job.suite), ("variant", job.variant), ("script", job.script),
-        ("env_id", job.env_id), ("seed", job.seed), ("global_step", checkpoint["global_step"]),
-        ("commit", ", ".join(commits)), ("machine", machine()),
-        ("versions", versions(("torch", "numpy", "gymnasium", "mujoco", "ale-py", *(["stable-baselines3"] if "sb3" in job.script else [])))),
-        ("wall_time_s", f"{wall:.0f}"), ("attempts", len(attempts)), *([("beta_range", beta)] if beta else []),
-    ]  # fmt: skip
+        ("command", shlex.join(job.command())),
+        ("suite", job.suite),
+        ("variant", job.variant),
+        ("script", job.script),
+        ("env_id", job.env_id),
+        ("seed", job.seed),
+        ("global_step", checkpoint["global_step"]),
+        ("commit", ", ".join(commits)),
+        ("machine", machine()),
+        (
+            "versions",
+            versions(
+                (
+                    "torch",
+                    "numpy",
+                    "gymnasium",
+                    "mujoco",
+                    "ale-py",
+                    *(["stable-baselines3"] if "sb3" in job.script else []),
+                )
+            ),
+        ),
+        ("wall_time_s", f"{wall:.0f}"),
+        ("attempts", len(attempts)),
+        *([("beta_range", beta)] if beta else []),
+    ]
     if series:  # beta after each update, for the report's plot of it
         write_series(job.results_dir / "beta" / f"{job.name}.csv", ("beta", "kl"), series)
     if updates:  # the update's statistics per iteration, for the report's diagnostics
@@ -276,13 +356,21 @@ def last_step(job):
 
 def fmt_time(seconds):
     seconds = int(seconds)
-    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+    return (
+        f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+    )
 
 
 def start_process(cmd, root, log, run_dir):
     """Start a run's command in a session of its own, logging to `log`, and note its pid in the run's folder."""
-    proc = subprocess.Popen([sys.executable, *cmd[1:]], cwd=root, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, *cmd[1:]],
+        cwd=root,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"},
+    )
     (Path(run_dir) / "pid").write_text(str(proc.pid))
     return proc
 
@@ -346,11 +434,18 @@ def start_ray(address, workers):
         try:
             socket.create_connection((host, int(port)), timeout=5).close()
         except (OSError, ValueError):
-            raise ValueError(f"no Ray cluster answers at --ray-address {address} (start one with `ray start --head`)") from None
+            raise ValueError(
+                f"no Ray cluster answers at --ray-address {address} (start one with `ray start --head`)"
+            ) from None
     import ray
 
-    ray.init(address=address or None, num_cpus=None if address else workers, include_dashboard=False, log_to_driver=False,
-             configure_logging=False)  # fmt: skip
+    ray.init(
+        address=address or None,
+        num_cpus=None if address else workers,
+        include_dashboard=False,
+        log_to_driver=False,
+        configure_logging=False,
+    )
 
 
 def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=None, launch=launch_local):
@@ -381,7 +476,9 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
     start = time.time()
     steps_at_start = {}
     signals = []  # the handler only notes the signal; the loop below stops the runs, once
-    previous = {sig: signal.signal(sig, lambda signum, frame: signals.append(signum)) for sig in (signal.SIGTERM, signal.SIGINT)}
+    previous = {
+        sig: signal.signal(sig, lambda signum, frame: signals.append(signum)) for sig in (signal.SIGTERM, signal.SIGINT)
+    }
     stopping, last_status = False, 0.0
     try:
         while (todo and not signals) or running:
@@ -400,8 +497,15 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                 resumed = job.checkpoint.exists()
                 cmd = job.command(save_every)
                 if resumed:  # the run's own hyperparameters come back from its checkpoint
-                    cmd = ["python", job.script, "--resume", str(_rel(job.checkpoint)), "--torch-threads", "1",
-                           *(["--save-every", str(save_every)] if save_every else [])]  # fmt: skip
+                    cmd = [
+                        "python",
+                        job.script,
+                        "--resume",
+                        str(_rel(job.checkpoint)),
+                        "--torch-threads",
+                        "1",
+                        *(["--save-every", str(save_every)] if save_every else []),
+                    ]
                 log = open(job.run_dir / "log.txt", "a")
                 log.write(f"$ {shlex.join(cmd)}\n")
                 log.flush()
@@ -410,7 +514,11 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                 proc = launch(job, cmd, log)
                 running[proc] = (job, time.time(), commit_of(job.script), resumed, log)
                 job.progress = steps_at_start[job.name] = last_step(job) if resumed else 0
-                print(f"{'resume' if resumed else 'start '} {job.name}" + (f" at step {job.progress:,}" if resumed else ""), flush=True)
+                print(
+                    f"{'resume' if resumed else 'start '} {job.name}"
+                    + (f" at step {job.progress:,}" if resumed else ""),
+                    flush=True,
+                )
             time.sleep(0.2)
             for proc in [p for p in running if p.poll() is not None]:
                 job, started, commit, resumed, log = running.pop(proc)
@@ -430,7 +538,9 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                     print(f"stopped {job.name}: its checkpoint is kept; run the same command to resume", flush=True)
                 else:
                     failed += 1
-                    print(f"FAILED {job.name} (exit {proc.returncode}); see {_rel(job.run_dir / 'log.txt')}", flush=True)
+                    print(
+                        f"FAILED {job.name} (exit {proc.returncode}); see {_rel(job.run_dir / 'log.txt')}", flush=True
+                    )
             if time.time() - last_status > status_every and running:
                 last_status = time.time()
                 for job, *_ in running.values():
@@ -445,7 +555,9 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
 def status_line(jobs, done, total, running, todo, steps_at_start, start):
     """Runs done/total and an ETA from the steps this sweep has made so far."""
     made = sum(job.progress - steps_at_start.get(job.name, 0) for job in jobs if job.name in steps_at_start)
-    left = sum(job.total_timesteps - job.progress for job, *_ in running.values()) + sum(job.total_timesteps for job in todo)
+    left = sum(job.total_timesteps - job.progress for job, *_ in running.values()) + sum(
+        job.total_timesteps for job in todo
+    )
     elapsed = time.time() - start
     eta = fmt_time(left / (made / elapsed)) if made > 0 else "?"
     now = ", ".join(f"{job.name} {job.progress / job.total_timesteps:.0%}" for job, *_ in running.values())
@@ -453,28 +565,48 @@ def status_line(jobs, done, total, running, todo, steps_at_start, start):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog="suites: " + "; ".join(f"{k}: {v.about} (variants: {', '.join(v.variants)})" for k, v in SUITES.items()))
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0],
+        epilog="suites: " + "; ".join(f"{k}: {v.about} (variants: {', '.join(v.variants)})" for k, v in SUITES.items()),
+    )
     parser.add_argument("suite", help=f"one of: {', '.join(SUITES)}")
     parser.add_argument("--variants", nargs="+", help="a subset of the suite's variants (default: all)")
     parser.add_argument("--envs", nargs="+", help="a subset of envs, e.g. Hopper Swimmer (default: the suite's)")
     parser.add_argument("--seeds", nargs="+", type=int, help="default: the suite's (1 2 3 for the MuJoCo suites)")
-    parser.add_argument("--total-timesteps", type=int, help="another budget; its results go to results/<suite>_<budget>/")
-    parser.add_argument("--workers", type=int, default=os.cpu_count(), help="runs at once, each on one torch thread (default: the number of cores)")
+    parser.add_argument(
+        "--total-timesteps", type=int, help="another budget; its results go to results/<suite>_<budget>/"
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count(),
+        help="runs at once, each on one torch thread (default: the number of cores)",
+    )
     parser.add_argument("--save-every", type=int, help="checkpoint every N iterations (default: the script's)")
     parser.add_argument("--results-dir", type=Path, help="default: benchmarks/results")
-    parser.add_argument("--runs-dir", type=Path, help="where run directories and checkpoints live (default: benchmarks/runs)")
+    parser.add_argument(
+        "--runs-dir", type=Path, help="where run directories and checkpoints live (default: benchmarks/runs)"
+    )
     parser.add_argument("--status-every", type=float, default=60.0, help="seconds between progress lines")
     parser.add_argument("--list", action="store_true", help="print the grid and what is finished, and run nothing")
-    parser.add_argument("--backend", choices=["local", "ray"], default="local",
-                        help="local: subprocesses of this runner; ray: one Ray task a run, on a local Ray instance or --ray-address")
-    parser.add_argument("--ray-address", help="a Ray cluster to join, such as 10.0.0.1:6379 (default: start a local instance)")
+    parser.add_argument(
+        "--backend",
+        choices=["local", "ray"],
+        default="local",
+        help="local: subprocesses of this runner; ray: one Ray task a run, on a local Ray instance or --ray-address",
+    )
+    parser.add_argument(
+        "--ray-address", help="a Ray cluster to join, such as 10.0.0.1:6379 (default: start a local instance)"
+    )
     args = parser.parse_args()
     try:
         if args.workers <= 0:
             raise ValueError(f"--workers must be positive, got {args.workers}")
         if args.total_timesteps is not None and args.total_timesteps <= 0:
             raise ValueError(f"--total-timesteps must be positive, got {args.total_timesteps}")
-        jobs = make_grid(args.suite, args.variants, args.envs, args.seeds, args.total_timesteps, args.results_dir, args.runs_dir)
+        jobs = make_grid(
+            args.suite, args.variants, args.envs, args.seeds, args.total_timesteps, args.results_dir, args.runs_dir
+        )
         check_grid(jobs)
     except ValueError as e:
         sys.exit(f"run.py: error: {e}")
@@ -490,7 +622,14 @@ def main():
             sys.exit(f"run.py: error: {e}")
     # On Ray, as many runs at once as the cluster has CPUs (a run asks for one); locally, --workers.
     workers = int(sys.modules["ray"].cluster_resources().get("CPU", 1)) if "ray" in sys.modules else args.workers
-    failed = run_grid(jobs, workers, args.save_every, args.status_every, args.results_dir, RayRun if args.backend == "ray" else launch_local)
+    failed = run_grid(
+        jobs,
+        workers,
+        args.save_every,
+        args.status_every,
+        args.results_dir,
+        RayRun if args.backend == "ray" else launch_local,
+    )
     finished = sum(job.csv.exists() for job in jobs)
     print(f"{finished}/{len(jobs)} runs finished" + (f", {failed} failed" if failed else ""))
     if failed:

@@ -35,7 +35,9 @@ class Args:
     total_timesteps: int = 1_000_000  # agent steps over all 8 envs
     torch_threads: int = 1  # torch CPU threads
     save_every: int = 50  # save the model and checkpoint.pt every this many rollouts (and at the end, and on a stop)
-    run_dir: str | None = None  # where the TensorBoard logs, the model and checkpoint.pt go (default: runs/sb3_atari__{env_id}__{seed})
+    run_dir: str | None = (
+        None  # where the TensorBoard logs, the model and checkpoint.pt go (default: runs/sb3_atari__{env_id}__{seed})
+    )
     resume: str | None = None  # continue the run of this checkpoint.pt, with its own arguments
 
 
@@ -63,11 +65,19 @@ def make_model(args, run_dir):
     if os.path.exists(model_path):  # a resumed run: the weights, the optimizer and the step count
         return PPO.load(model_path, env=envs, device="cpu"), model_path
     model = PPO(
-        "CnnPolicy", envs, n_steps=128, n_epochs=4, batch_size=256,
+        "CnnPolicy",
+        envs,
+        n_steps=128,
+        n_epochs=4,
+        batch_size=256,
         learning_rate=lambda progress_remaining: 2.5e-4 * progress_remaining,
         clip_range=lambda progress_remaining: 0.1 * progress_remaining,
-        vf_coef=0.5, ent_coef=0.01, device="cpu", seed=args.seed, verbose=0,
-    )  # fmt: skip
+        vf_coef=0.5,
+        ent_coef=0.01,
+        device="cpu",
+        seed=args.seed,
+        verbose=0,
+    )
     return model, model_path
 
 
@@ -86,7 +96,13 @@ def main():
 
     if args.resume is not None:
         saved = torch.load(args.resume, map_location="cpu", weights_only=True)
-        args = Args(**{**saved["args"], **{k: getattr(args, k) for k in RUNTIME_FIELDS}, "run_dir": os.path.dirname(os.path.abspath(args.resume))})
+        args = Args(
+            **{
+                **saved["args"],
+                **{k: getattr(args, k) for k in RUNTIME_FIELDS},
+                "run_dir": os.path.dirname(os.path.abspath(args.resume)),
+            }
+        )
     run_dir = args.run_dir or f"runs/sb3_atari__{args.env_id}__{args.seed}"
     os.makedirs(run_dir, exist_ok=True)
     torch.set_num_threads(args.torch_threads)
@@ -94,12 +110,17 @@ def main():
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     writer = SummaryWriter(run_dir, purge_step=model.num_timesteps + 1 if args.resume else None)
     stop = []
-    previous = {sig: signal.signal(sig, lambda signum, frame: stop.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {
+        sig: signal.signal(sig, lambda signum, frame: stop.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)
+    }
 
     def save():
         model.save(model_path)
         writer.flush()
-        torch.save({"format": "sb3-checkpoint-v1", "args": asdict(args), "global_step": model.num_timesteps}, f"{checkpoint_path}.tmp")
+        torch.save(
+            {"format": "sb3-checkpoint-v1", "args": asdict(args), "global_step": model.num_timesteps},
+            f"{checkpoint_path}.tmp",
+        )
         os.replace(f"{checkpoint_path}.tmp", checkpoint_path)
 
     class Log(BaseCallback):
@@ -109,7 +130,9 @@ def main():
             for info in self.locals["infos"]:
                 if "episode" in info:  # a whole game ended (Monitor is below the episodic-life wrapper)
                     writer.add_scalar("charts/episodic_return", info["episode"]["r"], self.num_timesteps)
-                    writer.add_scalar("charts/episodic_length", math.ceil(info["episode"]["l"] / FRAME_SKIP), self.num_timesteps)
+                    writer.add_scalar(
+                        "charts/episodic_length", math.ceil(info["episode"]["l"] / FRAME_SKIP), self.num_timesteps
+                    )
             return not stop
 
         def _on_rollout_end(self):

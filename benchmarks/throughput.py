@@ -33,7 +33,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -77,7 +77,9 @@ def measure_ours(case, env_id, steps):
     script, *flags = case.split()
     module = load_script(script)
     with tempfile.TemporaryDirectory() as tmp:
-        args = tyro.cli(module.Args, args=[*flags, "--env-id", env_id, "--total-timesteps", str(steps), "--run-dir", tmp])  # the defaults
+        args = tyro.cli(
+            module.Args, args=[*flags, "--env-id", env_id, "--total-timesteps", str(steps), "--run-dir", tmp]
+        )  # the defaults
         module.check_args(args)
         start = time.time()
         module.train(args)
@@ -116,12 +118,23 @@ def measure_sb3_ppo_mujoco(env_id, steps, threads=None):
         torch.set_num_threads(threads)
     envs = VecNormalize(DummyVecEnv([lambda: gym.make(env_id)]), gamma=0.99)
     model = PPO(
-        "MlpPolicy", envs, n_steps=2048, batch_size=64, n_epochs=10,
+        "MlpPolicy",
+        envs,
+        n_steps=2048,
+        batch_size=64,
+        n_epochs=10,
         learning_rate=lambda progress_remaining: 3e-4 * progress_remaining,
-        gamma=0.99, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5,
+        gamma=0.99,
+        gae_lambda=0.95,
+        clip_range=0.2,
+        ent_coef=0.0,
+        vf_coef=0.5,
+        max_grad_norm=0.5,
         policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=torch.nn.Tanh, log_std_init=0.0),
-        device="cpu", seed=1, verbose=0,
-    )  # fmt: skip
+        device="cpu",
+        seed=1,
+        verbose=0,
+    )
     return learn(model, steps)
 
 
@@ -145,12 +158,22 @@ def measure_sb3_ppo_atari(env_id, steps):
     # and a 4-frame stack, with the paper's Table 5 settings as in ppo_atari.py.
     envs = VecFrameStack(make_atari_env(env_id, n_envs=8, seed=1), n_stack=4)
     model = PPO(
-        "CnnPolicy", envs, n_steps=128, batch_size=256, n_epochs=3,
+        "CnnPolicy",
+        envs,
+        n_steps=128,
+        batch_size=256,
+        n_epochs=3,
         learning_rate=lambda progress_remaining: 2.5e-4 * progress_remaining,
         clip_range=lambda progress_remaining: 0.1 * progress_remaining,
-        gamma=0.99, gae_lambda=0.95, ent_coef=0.01, vf_coef=1.0, max_grad_norm=0.5,
-        device="cpu", seed=1, verbose=0,
-    )  # fmt: skip
+        gamma=0.99,
+        gae_lambda=0.95,
+        ent_coef=0.01,
+        vf_coef=1.0,
+        max_grad_norm=0.5,
+        device="cpu",
+        seed=1,
+        verbose=0,
+    )
     return learn(model, steps)
 
 
@@ -212,8 +235,12 @@ def measure(case, env_id, steps):
 
 
 def commit():
-    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--", "*.py"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    rev = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--", "*.py"], capture_output=True, text=True, cwd=ROOT
+    ).stdout.strip()
     return rev + (" (with uncommitted changes)" if dirty else "")
 
 
@@ -274,18 +301,25 @@ def measure_suite(name, steps, repeats):
     lines = [
         f"## {name} ({env_id})",
         "",
-        "| case | median steps/s | samples | " + " | ".join(f"ratio to {p}" for p in peers) + " | fraction of env-only | first iteration |",
+        "| case | median steps/s | samples | "
+        + " | ".join(f"ratio to {p}" for p in peers)
+        + " | fraction of env-only | first iteration |",
         "|---|---|---|" + "---|" * len(peers) + "---|---|",
     ]
     for case in cases:
         ratios = " | ".join(f"{median[case] / median[p]:.2f}x" for p in peers)
         first_s = f"{first[case]:.1f} s" if first[case] is not None else "–"
-        lines.append(f"| {case} | {median[case]:.0f} | {', '.join(f'{s:.0f}' for s in samples[case])} | {ratios} | {median[case] / env:.2f} | {first_s} |")
+        lines.append(
+            f"| {case} | {median[case]:.0f} | {', '.join(f'{s:.0f}' for s in samples[case])} | {ratios} | {median[case] / env:.2f} | {first_s} |"
+        )
     for case in ours:
         eager = case.replace(" --compile", "")
         if case != eager and first[eager] is not None:
-            lines += ["", f"- Compilation: `{case}` takes {first[case] - first[eager]:.1f} s longer than `{eager}` to the end of its first"
-                          " iteration (medians); that is torch.compile's one-off cost, left out of the steps/s."]  # fmt: skip
+            lines += [
+                "",
+                f"- Compilation: `{case}` takes {first[case] - first[eager]:.1f} s longer than `{eager}` to the end of its first"
+                " iteration (medians); that is torch.compile's one-off cost, left out of the steps/s.",
+            ]
     lines += [
         "",
         f"- Settings: {env_id}, {suite['settings']};"
@@ -298,7 +332,7 @@ def measure_suite(name, steps, repeats):
         " actions (for Atari, ale-py's vector env as ppo_atari.py makes it).",
         "- The other process sharing the machine during the run, if any, is not controlled: compare ratios, not absolute figures.",
         f"- Command: `{command.strip()}`",
-        f"- Commit: {commit()}; date: {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
+        f"- Commit: {commit()}; date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
         f"- Versions: {versions(('torch', 'numpy', 'gymnasium', 'mujoco', 'ale-py', 'stable-baselines3'))}",
         f"- Machine: {machine()}",
     ]

@@ -21,21 +21,83 @@ SCRIPTS = sorted(p.name for p in ROOT.glob("ppo_*.py"))
 TINY = {
     "ppo_continuous.py": {
         "env_id": "Hopper-v5",
-        "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128", "--ent-coef", "0.01"],
-        "interruptible": ["--num-steps", "64", "--minibatch-size", "16", "--update-epochs", "10", "--total-timesteps", "2048"],
+        "tiny": [
+            "--num-steps",
+            "64",
+            "--minibatch-size",
+            "32",
+            "--update-epochs",
+            "2",
+            "--total-timesteps",
+            "128",
+            "--ent-coef",
+            "0.01",
+        ],
+        "interruptible": [
+            "--num-steps",
+            "64",
+            "--minibatch-size",
+            "16",
+            "--update-epochs",
+            "10",
+            "--total-timesteps",
+            "2048",
+        ],
         "wrong_action_space_env": "CartPole-v1",
     },
     "ppo_atari.py": {
         "env_id": "BreakoutNoFrameskip-v4",
         # 3 iterations of 4 envs x 96 steps: long enough for random games of Breakout to end
-        "tiny": ["--num-envs", "4", "--num-steps", "96", "--minibatch-size", "128", "--update-epochs", "1", "--total-timesteps", "1152"],
-        "interruptible": ["--num-envs", "1", "--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "1", "--total-timesteps", "2048"],
+        "tiny": [
+            "--num-envs",
+            "4",
+            "--num-steps",
+            "96",
+            "--minibatch-size",
+            "128",
+            "--update-epochs",
+            "1",
+            "--total-timesteps",
+            "1152",
+        ],
+        "interruptible": [
+            "--num-envs",
+            "1",
+            "--num-steps",
+            "64",
+            "--minibatch-size",
+            "32",
+            "--update-epochs",
+            "1",
+            "--total-timesteps",
+            "2048",
+        ],
         "wrong_action_space_env": "Hopper-v5",
     },
     "ppo_kl_penalty.py": {
         "env_id": "Hopper-v5",
-        "tiny": ["--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2", "--total-timesteps", "128", "--ent-coef", "0.01"],
-        "interruptible": ["--num-steps", "64", "--minibatch-size", "16", "--update-epochs", "10", "--total-timesteps", "2048"],
+        "tiny": [
+            "--num-steps",
+            "64",
+            "--minibatch-size",
+            "32",
+            "--update-epochs",
+            "2",
+            "--total-timesteps",
+            "128",
+            "--ent-coef",
+            "0.01",
+        ],
+        "interruptible": [
+            "--num-steps",
+            "64",
+            "--minibatch-size",
+            "16",
+            "--update-epochs",
+            "10",
+            "--total-timesteps",
+            "2048",
+        ],
         "wrong_action_space_env": "CartPole-v1",
     },
 }
@@ -71,10 +133,16 @@ def run_cli(script, *args, cwd, timeout=300, check=True):
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}  # MUJOCO_GL is left to the scripts' own default
     proc = subprocess.run(
         [sys.executable, str(ROOT / script), *map(str, args), *ONE_THREAD],
-        cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout,
-    )  # fmt: skip
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
     if check and proc.returncode != 0:
-        raise AssertionError(f"{script} {' '.join(map(str, args))} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
+        raise AssertionError(
+            f"{script} {' '.join(map(str, args))} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+        )
     return proc
 
 

@@ -16,11 +16,29 @@ CHANGED_ON_PURPOSE = {
     ("ppo_atari.py", "ppo_continuous.py"): {"Args", "Agent", "check_args", "train", "evaluate"},
 }
 MUST_SHARE = {
-    ("ppo_continuous.py", "ppo_kl_penalty.py"): {"compute_gae", "value_loss", "RunningMeanStd", "make_env", "layer_init", "Agent",
-                                                 "evaluate", "resumed_args", "load_checkpoint", "main"},
-    ("ppo_atari.py", "ppo_continuous.py"): {"compute_gae", "clipped_surrogate_loss", "value_loss", "layer_init", "resumed_args",
-                                            "save_checkpoint", "load_checkpoint", "main"},
-}  # fmt: skip
+    ("ppo_continuous.py", "ppo_kl_penalty.py"): {
+        "compute_gae",
+        "value_loss",
+        "RunningMeanStd",
+        "make_env",
+        "layer_init",
+        "Agent",
+        "evaluate",
+        "resumed_args",
+        "load_checkpoint",
+        "main",
+    },
+    ("ppo_atari.py", "ppo_continuous.py"): {
+        "compute_gae",
+        "clipped_surrogate_loss",
+        "value_loss",
+        "layer_init",
+        "resumed_args",
+        "save_checkpoint",
+        "load_checkpoint",
+        "main",
+    },
+}
 # The share of train()'s lines that a variant keeps word for word (difflib, non-blank, non-comment lines).
 TRAIN_SIMILARITY = {("ppo_atari.py", "ppo_continuous.py"): 0.80, ("ppo_continuous.py", "ppo_kl_penalty.py"): 0.85}
 SECTIONS = ["# THE MATH", "# ENVIRONMENT", "# AGENT", "# TRAINING", "# EVALUATION", "# MACHINERY"]
@@ -29,7 +47,11 @@ SECTIONS = ["# THE MATH", "# ENVIRONMENT", "# AGENT", "# TRAINING", "# EVALUATIO
 def top_level_sources(script):
     source = (ROOT / script).read_text()
     tree = ast.parse(source)
-    return {node.name: ast.get_source_segment(source, node) for node in tree.body if isinstance(node, (ast.FunctionDef, ast.ClassDef))}
+    return {
+        node.name: ast.get_source_segment(source, node)
+        for node in tree.body
+        if isinstance(node, (ast.FunctionDef, ast.ClassDef))
+    }
 
 
 def train_lines(script):
@@ -74,7 +96,13 @@ def test_sections_come_in_the_same_order(script):
     positions = [source.find(f"\n{section}") for section in SECTIONS]
     assert -1 not in positions and positions == sorted(positions), dict(zip(SECTIONS, positions))
     names = list(top_level_sources(script))
-    assert names.index("Args") < names.index("compute_gae") < names.index("Agent") < names.index("train") < names.index("evaluate")
+    assert (
+        names.index("Args")
+        < names.index("compute_gae")
+        < names.index("Agent")
+        < names.index("train")
+        < names.index("evaluate")
+    )
     assert names.index("evaluate") < names.index("load_checkpoint") < names.index("check_args") < names.index("main")
 
 
@@ -85,6 +113,8 @@ def test_doctests_pass(script):
     assert result.attempted >= 2 and result.failed == 0, result
 
 
-@pytest.mark.parametrize("script,limit", [("ppo_continuous.py", 455), ("ppo_atari.py", 455), ("ppo_kl_penalty.py", 505)])
+@pytest.mark.parametrize(
+    "script,limit", [("ppo_continuous.py", 455), ("ppo_atari.py", 455), ("ppo_kl_penalty.py", 505)]
+)
 def test_scripts_stay_short(script, limit):
     assert len((ROOT / script).read_text().splitlines()) <= limit

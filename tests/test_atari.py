@@ -14,10 +14,18 @@ def envs(num_envs=2, training=True, env_id="BreakoutNoFrameskip-v4", **args):
 
 @pytest.mark.parametrize(
     "env_id,game",
-    [("BreakoutNoFrameskip-v4", "breakout"), ("ALE/Breakout-v5", "breakout"), ("Breakout", "breakout"),
-     ("breakout", "breakout"), ("BeamRiderNoFrameskip-v4", "beam_rider"), ("ALE/MsPacman-v5", "ms_pacman"),
-     ("PongDeterministic-v4", "pong"), ("UpNDownNoFrameskip-v4", "up_n_down"), ("UpNDown", "up_n_down")],
-)  # fmt: skip
+    [
+        ("BreakoutNoFrameskip-v4", "breakout"),
+        ("ALE/Breakout-v5", "breakout"),
+        ("Breakout", "breakout"),
+        ("breakout", "breakout"),
+        ("BeamRiderNoFrameskip-v4", "beam_rider"),
+        ("ALE/MsPacman-v5", "ms_pacman"),
+        ("PongDeterministic-v4", "pong"),
+        ("UpNDownNoFrameskip-v4", "up_n_down"),
+        ("UpNDown", "up_n_down"),
+    ],
+)
 def test_env_ids_name_their_game(env_id, game):
     assert atari.game_name(env_id) == game
 
@@ -87,12 +95,15 @@ def test_life_loss_terminates_for_learning_but_the_game_and_its_score_go_on():
 
 @pytest.mark.parametrize(
     "term,trunc,frames,new_frames,expected",
-    [(True, False, 400, 404, False),  # a lost life: the game's frame count goes on
-     (True, False, 400, 7, True),  # the game ended: the count restarts with the next game's reset
-     (True, False, 400, 0, True),  # ... a reset of no no-ops and no FIRE
-     (False, True, 108_000, 12, True),  # cut by the frame cap
-     (False, False, 400, 404, False), (True, True, 400, 3, True)],
-)  # fmt: skip
+    [
+        (True, False, 400, 404, False),  # a lost life: the game's frame count goes on
+        (True, False, 400, 7, True),  # the game ended: the count restarts with the next game's reset
+        (True, False, 400, 0, True),  # ... a reset of no no-ops and no FIRE
+        (False, True, 108_000, 12, True),  # cut by the frame cap
+        (False, False, 400, 404, False),
+        (True, True, 400, 3, True),
+    ],
+)
 def test_game_over_table(term, trunc, frames, new_frames, expected):
     got = atari.game_over(np.array([term]), np.array([trunc]), np.array([frames]), np.array([new_frames]))
     assert got.tolist() == [expected]
@@ -177,11 +188,24 @@ def test_fire_on_life_loss(fire_on_life_loss, tmp_path, monkeypatch):
         return result
 
     monkeypatch.setattr(ale_py.AtariVectorEnv, "step", step)
-    atari.train(atari.Args(num_envs=4, num_steps=128, minibatch_size=128, update_epochs=1, total_timesteps=512,
-                           fire_on_life_loss=fire_on_life_loss, torch_threads=1, run_dir=str(tmp_path / "run")))  # fmt: skip
+    atari.train(
+        atari.Args(
+            num_envs=4,
+            num_steps=128,
+            minibatch_size=128,
+            update_epochs=1,
+            total_timesteps=512,
+            fire_on_life_loss=fire_on_life_loss,
+            torch_threads=1,
+            run_dir=str(tmp_path / "run"),
+        )
+    )
     fire = [a.name for a in atari.make_envs(atari.Args(num_envs=1)).ale.get_action_set()].index("FIRE")
-    after_lost_life = [next_actions[i] for (_, term, frames), (next_actions, _, new_frames) in zip(steps, steps[1:])
-                       for i in np.flatnonzero(term & (new_frames > frames))]  # fmt: skip
+    after_lost_life = [
+        next_actions[i]
+        for (_, term, frames), (next_actions, _, new_frames) in zip(steps, steps[1:])
+        for i in np.flatnonzero(term & (new_frames > frames))
+    ]
     assert len(after_lost_life) > 5
     assert all(a == fire for a in after_lost_life) == fire_on_life_loss, after_lost_life
 
@@ -229,10 +253,34 @@ def test_training_and_evaluation_videos_are_whole_games_in_colour(tmp_path):
     import imageio.v3 as iio
 
     run_dir = tmp_path / "run"
-    run_cli("ppo_atari.py", "--env-id", TINY["ppo_atari.py"]["env_id"], "--num-envs", "2", "--num-steps", "32",
-            "--minibatch-size", "64", "--update-epochs", "1", "--total-timesteps", "1280", "--capture-video",
-            "--run-dir", run_dir, cwd=tmp_path)  # fmt: skip
-    run_cli("ppo_atari.py", "--eval-checkpoint", run_dir / "checkpoint.pt", "--eval-episodes", "1", "--capture-video", cwd=tmp_path)
+    run_cli(
+        "ppo_atari.py",
+        "--env-id",
+        TINY["ppo_atari.py"]["env_id"],
+        "--num-envs",
+        "2",
+        "--num-steps",
+        "32",
+        "--minibatch-size",
+        "64",
+        "--update-epochs",
+        "1",
+        "--total-timesteps",
+        "1280",
+        "--capture-video",
+        "--run-dir",
+        run_dir,
+        cwd=tmp_path,
+    )
+    run_cli(
+        "ppo_atari.py",
+        "--eval-checkpoint",
+        run_dir / "checkpoint.pt",
+        "--eval-episodes",
+        "1",
+        "--capture-video",
+        cwd=tmp_path,
+    )
     names = sorted(p.name.split("-game-")[1] for p in (run_dir / "videos").glob("*.mp4"))
     assert names[:2] == ["0.mp4", "1.mp4"], names
     for path in [*(run_dir / "videos").glob("*.mp4"), run_dir / "videos-eval" / "eval-game-0.mp4"]:

@@ -10,12 +10,12 @@ import sys
 
 import pytest
 import torch
-
 from conftest import ROOT, signal_at_checkpoint
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import report  # noqa: E402
 import run  # noqa: E402
+
 from common import UPDATE_STATS, read_csv, write_csv  # noqa: E402
 
 # One iteration of ppo_continuous.py's default batch is 2048 steps; InvertedPendulum is the cheapest env.
@@ -24,10 +24,21 @@ TINY_GRID = ["--envs", "InvertedPendulum", "--seeds", "1"]
 
 def runner(*args, tmp_path, check=True, timeout=300):
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "run.py"), *args, "--results-dir", str(tmp_path / "results"),
-         "--runs-dir", str(tmp_path / "runs"), "--status-every", "1"],
-        capture_output=True, text=True, timeout=timeout,
-    )  # fmt: skip
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "run.py"),
+            *args,
+            "--results-dir",
+            str(tmp_path / "results"),
+            "--runs-dir",
+            str(tmp_path / "runs"),
+            "--status-every",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
     if check and proc.returncode != 0:
         raise AssertionError(f"run.py {' '.join(args)} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
     return proc
@@ -62,14 +73,19 @@ def test_every_suite_is_a_valid_grid(suite):
     """Each variant's flags parse with its script's own parser, and each env passes its checks."""
     jobs = run.make_grid(suite)
     spec = run.SUITES[suite]
-    sizes = [len(spec.only[v][0]) * len(spec.only[v][1]) if v in spec.only else len(spec.envs) * len(spec.seeds) for v in spec.variants]
+    sizes = [
+        len(spec.only[v][0]) * len(spec.only[v][1]) if v in spec.only else len(spec.envs) * len(spec.seeds)
+        for v in spec.variants
+    ]
     assert len(jobs) == sum(sizes)
     run.check_grid(jobs)
 
 
 def test_atari_suite_is_three_games_three_seeds_and_the_sb3_peer():
     runs = {(job.variant, job.env_id.split("NoFrameskip")[0], job.seed) for job in run.make_grid("atari")}
-    assert {(e, s) for v, e, s in runs if v == "ppo"} == {(e, s) for e in ("Pong", "Breakout", "BeamRider") for s in (1, 2, 3)}
+    assert {(e, s) for v, e, s in runs if v == "ppo"} == {
+        (e, s) for e in ("Pong", "Breakout", "BeamRider") for s in (1, 2, 3)
+    }
     assert {(e, s) for v, e, s in runs if v == "sb3"} == {("Pong", 1), ("Breakout", 1)}
     assert {job.total_timesteps for job in run.make_grid("atari")} == {1_000_000}
 
@@ -78,12 +94,19 @@ def test_table1_rows_are_the_papers():
     import tyro
 
     variants = run.SUITES["table1"].variants
-    parsed = {name: (script, tyro.cli(run.load_script(script).Args, args=flags)) for name, (script, flags) in variants.items()}
+    parsed = {
+        name: (script, tyro.cli(run.load_script(script).Args, args=flags)) for name, (script, flags) in variants.items()
+    }
     assert parsed["no-clip"][1].init_beta == 0 and not parsed["no-clip"][1].adaptive_beta
     assert [parsed[f"clip{e}"][1].clip_coef for e in ("0.1", "0.2", "0.3")] == [0.1, 0.2, 0.3]
     for d in ("0.003", "0.01", "0.03"):
         args = parsed[f"kl{d}"][1]
-        assert parsed[f"kl{d}"][0] == "ppo_kl_penalty.py" and args.adaptive_beta and args.kl_target == float(d) and args.init_beta == 1
+        assert (
+            parsed[f"kl{d}"][0] == "ppo_kl_penalty.py"
+            and args.adaptive_beta
+            and args.kl_target == float(d)
+            and args.init_beta == 1
+        )
     for b in ("0.3", "1", "3", "10"):
         args = parsed[f"beta{b}"][1]
         assert not args.adaptive_beta and args.init_beta == float(b)
@@ -102,7 +125,9 @@ def test_runner_finishes_skips_and_shares_identical_runs(tmp_path):
     steps = [step for step, _, _ in rows]
     assert len(rows) > 10 and steps == sorted(steps) and steps[-1] <= 4096
     assert all(length > 0 for _, _, length in rows)
-    updates = (out.parent / "updates" / out.name).read_text().splitlines()  # the update's statistics, one row per iteration
+    updates = (
+        (out.parent / "updates" / out.name).read_text().splitlines()
+    )  # the update's statistics, one row per iteration
     assert updates[0] == "global_step,entropy,approx_kl,clipfrac,explained_variance,value_loss"
     assert [int(line.split(",")[0]) for line in updates[1:]] == [2048, 4096]
     assert all(math.isfinite(float(x)) for line in updates[1:] for x in line.split(","))
@@ -111,14 +136,28 @@ def test_runner_finishes_skips_and_shares_identical_runs(tmp_path):
     again = runner("mujoco", *TINY_GRID, "--total-timesteps", "4096", tmp_path=tmp_path)
     assert "1/1 runs finished, 0 to run" in again.stdout and "start" not in again.stdout
     assert out.read_bytes() == content
-    attempts = (tmp_path / "runs" / run.results_folder("mujoco", 4096) / "InvertedPendulum-v5__clip0.2__seed1" / "attempts.txt").read_text().splitlines()
+    attempts = (
+        (
+            tmp_path
+            / "runs"
+            / run.results_folder("mujoco", 4096)
+            / "InvertedPendulum-v5__clip0.2__seed1"
+            / "attempts.txt"
+        )
+        .read_text()
+        .splitlines()
+    )
     assert len(attempts) == 1, "a finished run is not run again"
 
     # table1's clip0.2 row is the same run: copied, not run again.
     shared = runner("table1", "--variants", "clip0.2", *TINY_GRID, "--total-timesteps", "4096", tmp_path=tmp_path)
     assert "copied" in shared.stdout
-    assert (tmp_path / "results" / run.results_folder("table1", 4096) / "InvertedPendulum-v5__clip0.2__seed1.csv").read_bytes() == content
-    assert (tmp_path / "results" / run.results_folder("table1", 4096) / "updates" / out.name).read_text() == "\n".join(updates) + "\n"
+    assert (
+        tmp_path / "results" / run.results_folder("table1", 4096) / "InvertedPendulum-v5__clip0.2__seed1.csv"
+    ).read_bytes() == content
+    assert (tmp_path / "results" / run.results_folder("table1", 4096) / "updates" / out.name).read_text() == "\n".join(
+        updates
+    ) + "\n"
     assert not (tmp_path / "runs" / run.results_folder("table1", 4096)).exists()
 
 
@@ -128,19 +167,41 @@ def test_a_shared_kl_run_brings_its_beta_series(tmp_path):
     fake_run(source, "Hopper-v5", "kl0.01", 1, 100.0, steps=4096)
     (source / "beta").mkdir()
     (source / "beta" / "Hopper-v5__kl0.01__seed1.csv").write_text("global_step,beta,kl\n2048,1,0.01\n4096,0.5,0.001\n")
-    shared = runner("beta_collapse", "--variants", "kl0.01", "--seeds", "1", "--total-timesteps", "4096", tmp_path=tmp_path)
+    shared = runner(
+        "beta_collapse", "--variants", "kl0.01", "--seeds", "1", "--total-timesteps", "4096", tmp_path=tmp_path
+    )
     assert "copied" in shared.stdout and "start" not in shared.stdout
     copy = tmp_path / "results" / run.results_folder("beta_collapse", 4096)
-    assert (copy / "Hopper-v5__kl0.01__seed1.csv").read_bytes() == (source / "Hopper-v5__kl0.01__seed1.csv").read_bytes()
-    assert (copy / "beta" / "Hopper-v5__kl0.01__seed1.csv").read_text() == (source / "beta" / "Hopper-v5__kl0.01__seed1.csv").read_text()
+    assert (copy / "Hopper-v5__kl0.01__seed1.csv").read_bytes() == (
+        source / "Hopper-v5__kl0.01__seed1.csv"
+    ).read_bytes()
+    assert (copy / "beta" / "Hopper-v5__kl0.01__seed1.csv").read_text() == (
+        source / "beta" / "Hopper-v5__kl0.01__seed1.csv"
+    ).read_text()
 
 
 def interrupt_at_first_checkpoint(tmp_path, total, *extra):
     """Start a sweep of one KL run of `total` steps, SIGTERM the runner once the run has saved a checkpoint,
     and check that it stopped there. Returns the runner's command and the checkpoint's step."""
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "table1", "--variants", "kl0.01", *TINY_GRID,
-           "--total-timesteps", str(total), "--save-every", "1", "--results-dir", str(tmp_path / "results"),
-           "--runs-dir", str(tmp_path / "runs"), "--status-every", "1", *extra]  # fmt: skip
+    cmd = [
+        sys.executable,
+        str(ROOT / "benchmarks" / "run.py"),
+        "table1",
+        "--variants",
+        "kl0.01",
+        *TINY_GRID,
+        "--total-timesteps",
+        str(total),
+        "--save-every",
+        "1",
+        "--results-dir",
+        str(tmp_path / "results"),
+        "--runs-dir",
+        str(tmp_path / "runs"),
+        "--status-every",
+        "1",
+        *extra,
+    ]
     run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     out, err = signal_at_checkpoint(proc, run_dir / "checkpoint.pt", signal.SIGTERM, wait=180)
@@ -157,7 +218,17 @@ def test_runner_resumes_an_interrupted_run(tmp_path):
     csv_path = tmp_path / "results" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1.csv"
     assert not csv_path.exists(), "an unfinished run has no CSV"
 
-    resumed = runner("table1", "--variants", "kl0.01", *TINY_GRID, "--total-timesteps", str(total), "--save-every", "1", tmp_path=tmp_path)
+    resumed = runner(
+        "table1",
+        "--variants",
+        "kl0.01",
+        *TINY_GRID,
+        "--total-timesteps",
+        str(total),
+        "--save-every",
+        "1",
+        tmp_path=tmp_path,
+    )
     assert "resume InvertedPendulum-v5__kl0.01__seed1" in resumed.stdout
     assert f"at step {saved_step:,}" in (run_dir / "log.txt").read_text()
     meta, rows = read_csv(csv_path)
@@ -167,7 +238,9 @@ def test_runner_resumes_an_interrupted_run(tmp_path):
     assert beta[0] == "global_step,beta,kl" and len(beta) - 1 == total // 2048, "beta after each of the run's updates"
     assert [int(line.split(",")[0]) for line in beta[1:]] == list(range(2048, total + 1, 2048))
     updates = (csv_path.parent / "updates" / csv_path.name).read_text().splitlines()
-    assert [int(line.split(",")[0]) for line in updates[1:]] == list(range(2048, total + 1, 2048)), "one row per update, across the resume"
+    assert [int(line.split(",")[0]) for line in updates[1:]] == list(range(2048, total + 1, 2048)), (
+        "one row per update, across the resume"
+    )
     steps = [step for step, _, _ in rows]
     assert steps == sorted(steps), "one curve, without a fold at the resume"
     attempts = [line.split("\t") for line in (run_dir / "attempts.txt").read_text().splitlines()]
@@ -184,7 +257,9 @@ def test_ray_backend_makes_the_same_results_as_the_local_one_and_skips_them_afte
     first = runner(*grid, "--backend", "ray", tmp_path=tmp_path / "ray")
     assert "done   InvertedPendulum-v5__kl0.01__seed1" in first.stdout and "1/1 runs finished" in first.stdout
     files = {p.relative_to(tmp_path / "ray" / "results") for p in (tmp_path / "ray" / "results").rglob("*.csv")}
-    assert files == {p.relative_to(tmp_path / "local" / "results") for p in (tmp_path / "local" / "results").rglob("*.csv")}
+    assert files == {
+        p.relative_to(tmp_path / "local" / "results") for p in (tmp_path / "local" / "results").rglob("*.csv")
+    }
     for path in files:  # the same run, to the episode and to every value of its series: only when, and how long, differ
         local, ray = (tmp_path / backend / "results" / path for backend in ("local", "ray"))
         if path.parent.name in ("beta", "updates"):
@@ -192,7 +267,9 @@ def test_ray_backend_makes_the_same_results_as_the_local_one_and_skips_them_afte
             continue
         (meta_l, rows_l), (meta_r, rows_r) = read_csv(local), read_csv(ray)
         assert rows_l == rows_r and meta_l.keys() == meta_r.keys()
-        assert meta_l["command"].replace(str(tmp_path / "local"), "") == meta_r["command"].replace(str(tmp_path / "ray"), "")
+        assert meta_l["command"].replace(str(tmp_path / "local"), "") == meta_r["command"].replace(
+            str(tmp_path / "ray"), ""
+        )
     again = runner(*grid, "--backend", "ray", tmp_path=tmp_path / "ray")
     assert "1/1 runs finished, 0 to run" in again.stdout and "start" not in again.stdout
 
@@ -202,15 +279,25 @@ def test_ray_backend_stops_every_run_at_a_checkpoint_and_resumes(tmp_path):
     total = 6 * 2048
     cmd, _, _ = interrupt_at_first_checkpoint(tmp_path, total, "--backend", "ray")
     resumed = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert resumed.returncode == 0 and "resume InvertedPendulum-v5__kl0.01__seed1" in resumed.stdout, resumed.stdout + resumed.stderr
-    meta, _ = read_csv(tmp_path / "results" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1.csv")
+    assert resumed.returncode == 0 and "resume InvertedPendulum-v5__kl0.01__seed1" in resumed.stdout, (
+        resumed.stdout + resumed.stderr
+    )
+    meta, _ = read_csv(
+        tmp_path / "results" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1.csv"
+    )
     assert int(meta["global_step"]) == total and int(meta["attempts"]) == 2
 
 
-@pytest.mark.parametrize("args, message", [
-    (["table1", "--variants", "clip0.25", "--backend", "ray"], "has no variant 'clip0.25'"),
-    (["table1", *TINY_GRID, "--backend", "ray", "--ray-address", "127.0.0.1:1"], "no Ray cluster answers at --ray-address 127.0.0.1:1"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["table1", "--variants", "clip0.25", "--backend", "ray"], "has no variant 'clip0.25'"),
+        (
+            ["table1", *TINY_GRID, "--backend", "ray", "--ray-address", "127.0.0.1:1"],
+            "no Ray cluster answers at --ray-address 127.0.0.1:1",
+        ),
+    ],
+)
 def test_ray_backend_rejects_a_bad_grid_or_address_in_one_line(tmp_path, args, message):
     proc = runner(*args, tmp_path=tmp_path, check=False)
     lines = proc.stderr.strip().splitlines()
@@ -225,8 +312,16 @@ def fake_run(folder, env_id, variant, seed, last100_mean, steps=100_000):
     """A CSV whose last 100 episodes average last100_mean, after 50 early episodes that must not count."""
     returns = [-1e4] * 50 + [last100_mean - 1.0, last100_mean + 1.0] * 50
     rows = [((i + 1) * steps // len(returns), r, 10) for i, r in enumerate(returns)]
-    header = [("command", "test"), ("env_id", env_id), ("seed", seed), ("global_step", steps), ("commit", "abc1234"),
-              ("versions", "test versions"), ("machine", "test machine"), ("wall_time_s", "60")]  # fmt: skip
+    header = [
+        ("command", "test"),
+        ("env_id", env_id),
+        ("seed", seed),
+        ("global_step", steps),
+        ("commit", "abc1234"),
+        ("versions", "test versions"),
+        ("machine", "test machine"),
+        ("wall_time_s", "60"),
+    ]
     write_csv(folder / f"{env_id}__{variant}__seed{seed}.csv", header, rows)
 
 
@@ -304,12 +399,19 @@ def test_an_older_env_version_is_compared_with_the_default_on_the_newest(tmp_pat
     reference = {("paper_fig3", "InvertedDoublePendulum", "clip0.2"): (8000.0, None, "the paper")}
     lines = report.report(folder, reference=reference, results=results).splitlines()
     se = math.sqrt(1e6 / 3 + 1e6 / 3)  # both samples have variance 1000²
-    rows = [line for line in lines if line.startswith("| InvertedDoublePendulum") and "reaches" not in line and line.count("|") == 6]
-    assert rows == [
-        "| InvertedDoublePendulum-v5 | clip0.2 | 6,000 ± 1,000 (3) | – | no (8,000) |",
-        f"| InvertedDoublePendulum-v5 | const-lr | 6,100 ± 1,000 (3) | +100.0 ± {se:,.1f} | no (8,000) |",
-        f"| InvertedDoublePendulum-v4 | clip0.2 | 8,000 ± 1,000 (3) | **+2,000.0 ± {se:,.1f}** | yes (8,000) |",  # beyond 2 SE
+    rows = [
+        line
+        for line in lines
+        if line.startswith("| InvertedDoublePendulum") and "reaches" not in line and line.count("|") == 6
     ]
+    assert (
+        rows
+        == [
+            "| InvertedDoublePendulum-v5 | clip0.2 | 6,000 ± 1,000 (3) | – | no (8,000) |",
+            f"| InvertedDoublePendulum-v5 | const-lr | 6,100 ± 1,000 (3) | +100.0 ± {se:,.1f} | no (8,000) |",
+            f"| InvertedDoublePendulum-v4 | clip0.2 | 8,000 ± 1,000 (3) | **+2,000.0 ± {se:,.1f}** | yes (8,000) |",  # beyond 2 SE
+        ]
+    )
 
 
 @pytest.mark.parametrize("kl003_score, holds", [(80.0, True), (120.0, False)])
@@ -317,51 +419,79 @@ def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds
     results = tmp_path / "results"
     folder = results / "table1"
     fake_random(results, "A-v0", [0.0])
-    scores = {v: 50.0 for v in run.SUITES["table1"].variants} | {"clip0.2": 100.0, "no-clip": 10.0, "kl0.03": kl003_score}
+    scores = {v: 50.0 for v in run.SUITES["table1"].variants} | {
+        "clip0.2": 100.0,
+        "no-clip": 10.0,
+        "kl0.03": kl003_score,
+    }
     for variant, value in scores.items():
         fake_run(folder, "A-v0", variant, 1, value)
     text = report.report(folder, results=results)
     assert f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:**" in text
     if holds:  # one seed: no standard errors, so the gaps stand alone
-        assert ("clip 0.2 is the best of the 11 rows, ahead of kl0.03 by 0.20; no clipping or penalty is the worst, behind clip0.1 by 0.40;"
-                " every adaptive KL row is below clip 0.2: the best, kl0.03 (0.80), is behind it by 0.20.") in text
+        assert (
+            "clip 0.2 is the best of the 11 rows, ahead of kl0.03 by 0.20; no clipping or penalty is the worst, behind clip0.1 by 0.40;"
+            " every adaptive KL row is below clip 0.2: the best, kl0.03 (0.80), is behind it by 0.20."
+        ) in text
     else:  # kl0.03 (1.20 on the scale where the best, itself, is 1) beats clip 0.2 (100 / 120)
         assert "clip 0.2 (0.83) is not the best row: kl0.03 is (1.00), ahead by 0.17" in text
         assert "adaptive KL kl0.03 (1.00) is not below clip 0.2 (0.83): it is ahead by 0.17." in text
     assert "±" not in text.split("The paper's order")[1].split("\n")[0]
-    assert "| clip0.2 | " + f"{100 / max(100.0, kl003_score):.2f} (1) | abc1234 |" in text, "the per-env breakdown, with its commits"
-    assert f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:**" in report.readme_block(results=results), "README too"
+    assert "| clip0.2 | " + f"{100 / max(100.0, kl003_score):.2f} (1) | abc1234 |" in text, (
+        "the per-env breakdown, with its commits"
+    )
+    assert (
+        f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:**"
+        in report.readme_block(results=results)
+    ), "README too"
     (folder / "A-v0__beta10__seed1.csv").unlink()
-    assert "waits for all 11 rows on every env and seed: 10 of 11 runs are in." in report.report(folder, results=results)
+    assert "waits for all 11 rows on every env and seed: 10 of 11 runs are in." in report.report(
+        folder, results=results
+    )
     fake_run(folder, "A-v0", "beta10", 1, 50.0)
     fake_random(results, "B-v0", [0.0])
     fake_run(folder, "B-v0", "clip0.2", 1, 100.0)  # a second env, on which only clip 0.2 has run: every row has a score
     text = report.report(folder, results=results)  # on A-v0 alone, but the verdict waits for the whole grid
-    assert "waits for all 11 rows on every env and seed: 12 of 22 runs are in. Until then the scores are over A-v0," in text
+    assert (
+        "waits for all 11 rows on every env and seed: 12 of 22 runs are in. Until then the scores are over A-v0,"
+        in text
+    )
     assert "The paper's order" not in text and "The paper's order" not in report.readme_block(results=results)
     (folder / "B-v0__clip0.2__seed1.csv").unlink()
     fake_run(folder, "A-v0", "clip0.2", 2, 100.0)  # and a second seed, which only clip 0.2 has
-    assert "waits for all 11 rows on every env and seed: 12 of 22 runs are in." in report.report(folder, results=results)
+    assert "waits for all 11 rows on every env and seed: 12 of 22 runs are in." in report.report(
+        folder, results=results
+    )
 
 
 def test_table1_standard_errors_pool_the_seeds_of_each_env(tmp_path):
     results = tmp_path / "results"
     folder = results / "table1"
-    scores = {("A-v0", "clip0.2"): [10.0, 20.0], ("A-v0", "no-clip"): [4.0, 8.0], ("B-v0", "clip0.2"): [10.0, 14.0, 12.0], ("B-v0", "no-clip"): [0.0, 30.0, 15.0]}
+    scores = {
+        ("A-v0", "clip0.2"): [10.0, 20.0],
+        ("A-v0", "no-clip"): [4.0, 8.0],
+        ("B-v0", "clip0.2"): [10.0, 14.0, 12.0],
+        ("B-v0", "no-clip"): [0.0, 30.0, 15.0],
+    }
     for (env, variant), values in scores.items():
         for seed, value in enumerate(values, start=1):
             fake_run(folder, env, variant, seed, value)
     fake_run(folder, "A-v0", "kl0.01", 1, 9.0)  # one run on one env: no standard error, and no entry in the common envs
     runs, random = report.load_runs(folder), {"A-v0": 0.0, "B-v0": -15.0}
     norm, envs, best = report.normalized_scores(runs, random)
-    assert envs == ["A-v0"] and sorted(report.standard_errors(runs, random, envs, best)) == ["clip0.2", "no-clip"]  # kl0.01: one run
+    assert envs == ["A-v0"] and sorted(report.standard_errors(runs, random, envs, best)) == [
+        "clip0.2",
+        "no-clip",
+    ]  # kl0.01: one run
     runs = [r for r in runs if r.variant != "kl0.01"]
     norm, envs, best = report.normalized_scores(runs, random)
     se = report.standard_errors(runs, random, envs, best)
     # By hand: A's scale is clip0.2's mean, 15 (random 0); B's is 30 (no-clip's mean 15, random -15). The score of a
     # row is the mean of its 5 runs, 2 on A and 3 on B; the variance of that mean is (2 var_A + 3 var_B) / 5².
-    var = {"clip0.2": (2 * statistics.variance([10 / 15, 20 / 15]) + 3 * statistics.variance([25 / 30, 29 / 30, 27 / 30])),
-           "no-clip": (2 * statistics.variance([4 / 15, 8 / 15]) + 3 * statistics.variance([15 / 30, 45 / 30, 30 / 30]))}
+    var = {
+        "clip0.2": (2 * statistics.variance([10 / 15, 20 / 15]) + 3 * statistics.variance([25 / 30, 29 / 30, 27 / 30])),
+        "no-clip": (2 * statistics.variance([4 / 15, 8 / 15]) + 3 * statistics.variance([15 / 30, 45 / 30, 30 / 30])),
+    }
     assert se == pytest.approx({v: math.sqrt(x) / 5 for v, x in var.items()})
 
 
@@ -370,16 +500,27 @@ def test_table1_verdict_says_when_a_gap_is_within_the_noise(tmp_path, beta3, wit
     results = tmp_path / "results"
     folder = results / "table1"
     fake_random(results, "A-v0", [0.0])
-    scores = {v: [50.0, 52.0] for v in run.SUITES["table1"].variants} | {"clip0.2": [100.0, 100.0], "no-clip": [10.0, 12.0], "beta3": beta3}
+    scores = {v: [50.0, 52.0] for v in run.SUITES["table1"].variants} | {
+        "clip0.2": [100.0, 100.0],
+        "no-clip": [10.0, 12.0],
+        "beta3": beta3,
+    }
     for variant, values in scores.items():
         for seed, value in enumerate(values, start=1):
             fake_run(folder, "A-v0", variant, seed, value)
-    line = next(line for line in report.report(folder, results=results).splitlines() if line.startswith("**The paper's order"))
+    line = next(
+        line for line in report.report(folder, results=results).splitlines() if line.startswith("**The paper's order")
+    )
     best = statistics.mean(scores["beta3"])  # beta3 leads, by one seed, and sets the scale
     d = (best - 100.0) / best
-    e = statistics.stdev([x / best for x in beta3]) / math.sqrt(2)  # the gap's error is beta3's: clip 0.2's two seeds agree
+    e = statistics.stdev([x / best for x in beta3]) / math.sqrt(
+        2
+    )  # the gap's error is beta3's: clip 0.2's two seeds agree
     assert f"beta3 is (1.00), ahead by {d:.2f} ± {e:.2f}" + (" (within 2 standard errors);" if within else ";") in line
-    assert " ± is the standard error over seeds" in line and ("a gap within twice it is one these seeds cannot settle" in line) == within
+    assert (
+        " ± is the standard error over seeds" in line
+        and ("a gap within twice it is one these seeds cannot settle" in line) == within
+    )
     assert f"| beta3 | 1.00 ± {e:.2f} | 2 |" in report.report(folder, results=results)
 
 
@@ -411,7 +552,10 @@ def test_best_window_finds_a_peak_the_score_misses():
     # 300 episodes, episode i ending at step 10 * i: returns of 0, but 10 for episodes 51 to 200. The score is 0.
     rows = [(10 * i, 10.0 if 50 < i <= 200 else 0.0, 1) for i in range(1, 301)]
     assert report.best_window(rows) == (10.0, 1_500)  # the first window of 100 tens: episodes 51 to 150
-    assert report.best_window(rows[:40]) == (statistics.mean(r[1] for r in rows[:40]), 400)  # fewer than 100: all of them
+    assert report.best_window(rows[:40]) == (
+        statistics.mean(r[1] for r in rows[:40]),
+        400,
+    )  # fewer than 100: all of them
 
 
 def test_quick_start_promises_what_the_default_hopper_runs_did(tmp_path):
@@ -429,10 +573,14 @@ def test_quick_start_promises_what_the_default_hopper_runs_did(tmp_path):
 def test_beta_section_reads_each_runs_kl_target_from_its_command(tmp_path):
     """d_targ comes from the run's command (or the script's default), not from the variant's name; a fixed beta is
     left out. The score at 90% of the steps is the mean of the last 100 episodes finished by then."""
+
     def kl_run(variant, flags, kls):
         steps = 2048 * len(kls)  # 40,960: the 90% mark is step 36,864, when 184 of the 204 episodes have finished
         episodes = [(200 * i, 10.0 if 200 * i <= 0.9 * steps else 0.0, 10) for i in range(1, 205)]
-        header = [("command", f"python ppo_kl_penalty.py --env-id Hopper-v5 --seed 1 {flags}".strip()), ("global_step", steps)]
+        header = [
+            ("command", f"python ppo_kl_penalty.py --env-id Hopper-v5 --seed 1 {flags}".strip()),
+            ("global_step", steps),
+        ]
         write_csv(tmp_path / f"Hopper-v5__{variant}__seed1.csv", header, episodes)
         (tmp_path / "beta").mkdir(exist_ok=True)
         with open(tmp_path / "beta" / f"Hopper-v5__{variant}__seed1.csv", "w", newline="") as f:
@@ -460,7 +608,9 @@ def test_updates_section_averages_each_tenth_of_a_run_then_the_seeds(tmp_path):
         fake_run(tmp_path, "Hopper-v5", "clip0.2", seed, 100.0 * seed)
         rows = [[2048 * (i + 1)] + [i + shift] * len(UPDATE_STATS) for i in range(20)]
         write = "\n".join(",".join(map(str, row)) for row in rows)
-        (tmp_path / "updates" / f"Hopper-v5__clip0.2__seed{seed}.csv").write_text(",".join(("global_step", *UPDATE_STATS)) + "\n" + write + "\n")
+        (tmp_path / "updates" / f"Hopper-v5__clip0.2__seed{seed}.csv").write_text(
+            ",".join(("global_step", *UPDATE_STATS)) + "\n" + write + "\n"
+        )
     lines = report.updates_section(tmp_path, ["clip0.2"])
     row = next(line for line in lines if line.startswith("| Hopper-v5 | clip0.2 (2) | explained_variance |"))
     cells = [float(c) for c in row.strip("|").split("|")[3:]]
@@ -481,7 +631,9 @@ def test_reference_figures_have_a_source_each():
 def test_cost_of_table1_counts_the_runs_not_done(tmp_path):
     results = tmp_path / "results"
     fake_run(results / "mujoco", "Hopper-v5", "clip0.2", 1, 100.0)  # one run of 60 s sets the cost per run
-    assert "132 runs, about 2 CPU-hours, of which 132 runs are not done yet (2 CPU-hours)." in report.cost_block(results)
+    assert "132 runs, about 2 CPU-hours, of which 132 runs are not done yet (2 CPU-hours)." in report.cost_block(
+        results
+    )
     jobs = run.make_grid("table1", envs=report.TABLE1_ENVS, results_root=results)
     for job in jobs[1:]:
         fake_run(job.csv.parent, job.env_id, job.variant, job.seed, 1.0)

@@ -12,10 +12,19 @@ import torch
 from conftest import ONE_THREAD, ROOT, SCRIPTS, TINY, load_script, run_cli, signal_at_checkpoint, tb_scalars, train_tiny
 
 EXPECTED_SCALARS = {
-    "charts/episodic_return", "charts/episodic_length", "charts/learning_rate", "charts/SPS",
-    "losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl",
-    "losses/old_approx_kl", "losses/clipfrac", "losses/explained_variance", "losses/loss",
-}  # fmt: skip
+    "charts/episodic_return",
+    "charts/episodic_length",
+    "charts/learning_rate",
+    "charts/SPS",
+    "losses/policy_loss",
+    "losses/value_loss",
+    "losses/entropy",
+    "losses/approx_kl",
+    "losses/old_approx_kl",
+    "losses/clipfrac",
+    "losses/explained_variance",
+    "losses/loss",
+}
 
 
 def weights(run_dir):
@@ -35,7 +44,16 @@ def test_import_runs_nothing_heavy(script):
 
 def test_help_lists_the_flags(script, tmp_path):
     out = run_cli(script, "--help", cwd=tmp_path).stdout
-    for flag in ["--env-id", "--total-timesteps", "--num-envs", "--num-steps", "--seed", "--resume", "--eval-checkpoint", "--save-every"]:
+    for flag in [
+        "--env-id",
+        "--total-timesteps",
+        "--num-envs",
+        "--num-steps",
+        "--seed",
+        "--resume",
+        "--eval-checkpoint",
+        "--save-every",
+    ]:
         assert flag in out
 
 
@@ -56,7 +74,9 @@ def test_smoke_run_logs_and_checkpoints(script, tiny_run):
     args = load_script(script).Args()
     ent_coef = tiny.get("--ent-coef", args.ent_coef)
     assert ent_coef > 0, "without an entropy bonus the check below cannot see the sign of its term"
-    for (_, total), (_, pg), (_, v), (_, ent) in zip(*(scalars[f"losses/{k}"] for k in ("loss", "policy_loss", "value_loss", "entropy"))):
+    for (_, total), (_, pg), (_, v), (_, ent) in zip(
+        *(scalars[f"losses/{k}"] for k in ("loss", "policy_loss", "value_loss", "entropy"))
+    ):
         assert total == pytest.approx(pg - ent_coef * ent + args.vf_coef * v, rel=1e-4, abs=1e-6)
     # Nothing is left half-written.
     assert not list(run_dir.glob("*.tmp"))
@@ -95,22 +115,49 @@ def test_seeds_of_different_runs_share_no_env(script, tmp_path, monkeypatch):
     monkeypatch.setattr(vector_env, "reset", reset)
     for run in range(1, 11):
         with pytest.raises(Started):
-            module.train(module.Args(env_id=TINY[script]["env_id"], seed=run, num_envs=8, torch_threads=1, run_dir=str(tmp_path / str(run))))
+            module.train(
+                module.Args(
+                    env_id=TINY[script]["env_id"],
+                    seed=run,
+                    num_envs=8,
+                    torch_threads=1,
+                    run_dir=str(tmp_path / str(run)),
+                )
+            )
     assert all(len(s) == 8 for s in seeds.values()), "the envs of one run have different seeds"
     for a in seeds:
         for b in seeds:
-            assert a == b or not seeds[a] & seeds[b], f"runs with --seed {a} and {b} share env seeds {seeds[a] & seeds[b]}"
+            assert a == b or not seeds[a] & seeds[b], (
+                f"runs with --seed {a} and {b} share env seeds {seeds[a] & seeds[b]}"
+            )
 
 
 def test_interrupt_saves_and_resume_continues_the_curve(script, tmp_path):
     cfg = TINY[script]
     run_dir = tmp_path / "run"
     # A run long enough to interrupt: 32 iterations of 64 steps, with a checkpoint every iteration.
-    args = [sys.executable, str(ROOT / script), "--env-id", cfg["env_id"], *cfg["interruptible"], "--save-every", "1", "--run-dir", str(run_dir), *ONE_THREAD]
+    args = [
+        sys.executable,
+        str(ROOT / script),
+        "--env-id",
+        cfg["env_id"],
+        *cfg["interruptible"],
+        "--save-every",
+        "1",
+        "--run-dir",
+        str(run_dir),
+        *ONE_THREAD,
+    ]
     # A shell without job control starts background jobs with SIGINT ignored, and Python then keeps
     # ignoring it; give the child the default disposition, as a terminal would.
-    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
+    proc = subprocess.Popen(
+        args,
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     out, err = signal_at_checkpoint(proc, run_dir / "checkpoint.pt", signal.SIGINT, wait=120)  # Ctrl-C
     assert proc.returncode == 130, (out, err)
     assert "Traceback" not in err and "--resume" in out
@@ -141,7 +188,9 @@ def test_eval_runs_the_saved_policy_and_films_it(script, tmp_path, tiny_run):
     import imageio.v3 as iio
 
     run_dir, _ = tiny_run(script)
-    out = run_cli(script, "--eval-checkpoint", run_dir / "checkpoint.pt", "--eval-episodes", "2", "--capture-video", cwd=tmp_path).stdout
+    out = run_cli(
+        script, "--eval-checkpoint", run_dir / "checkpoint.pt", "--eval-episodes", "2", "--capture-video", cwd=tmp_path
+    ).stdout
     assert "over 2 episodes" in out and "±" in out
     videos = sorted((run_dir / "videos-eval").glob("*.mp4"))
     assert len(videos) == 2, list(run_dir.rglob("*"))
@@ -223,7 +272,9 @@ def test_bad_input_is_one_clear_line_before_training(script, tmp_path, args, mes
     assert not (tmp_path / "runs").exists(), "training started"
 
 
-@pytest.mark.parametrize("args,message", [case for case in BAD_INPUTS if case[1] in IN_A_SUBPROCESS], ids=sorted(IN_A_SUBPROCESS))
+@pytest.mark.parametrize(
+    "args,message", [case for case in BAD_INPUTS if case[1] in IN_A_SUBPROCESS], ids=sorted(IN_A_SUBPROCESS)
+)
 def test_bad_input_from_the_shell_is_one_line_and_exit_2(script, tmp_path, args, message):
     bad_input_files(tmp_path)
     proc = run_cli(script, *[a.format(**TINY[script]) for a in args], cwd=tmp_path, check=False)
@@ -233,7 +284,9 @@ def test_bad_input_from_the_shell_is_one_line_and_exit_2(script, tmp_path, args,
     assert not (tmp_path / "runs").exists(), "training started"
 
 
-@pytest.mark.parametrize("script", [s for s in SCRIPTS if s != "ppo_atari.py"])  # Atari's: test_atari.py, whole games in colour
+@pytest.mark.parametrize(
+    "script", [s for s in SCRIPTS if s != "ppo_atari.py"]
+)  # Atari's: test_atari.py, whole games in colour
 def test_training_records_video_of_the_first_env(script, tmp_path):
     import imageio.v3 as iio
 
@@ -255,8 +308,10 @@ def test_atari_id_points_to_the_atari_script(script, tmp_path):
 def test_mujoco_scripts_check_their_input_without_ale_py(script, tmp_path):
     # A MuJoCo script copied into a project without ale-py still gives its one-line errors (sys.modules[name] = None
     # makes `import name` fail as if the package were not installed).
-    code = (f"import runpy, sys; sys.modules['ale_py'] = None; sys.argv = [{script!r}, '--env-id', 'NoSuchEnv-v0'];"
-            f" runpy.run_path({str(ROOT / script)!r}, run_name='__main__')")
+    code = (
+        f"import runpy, sys; sys.modules['ale_py'] = None; sys.argv = [{script!r}, '--env-id', 'NoSuchEnv-v0'];"
+        f" runpy.run_path({str(ROOT / script)!r}, run_name='__main__')"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "unknown env id" in lines[0], proc.stderr
@@ -276,20 +331,30 @@ def test_divergence_stops_with_one_line_and_keeps_the_last_finite_checkpoint(scr
     proc = run_cli(script, "--resume", path, cwd=tmp_path, check=False)
     assert proc.returncode == 1, (proc.stdout, proc.stderr)
     lines = [line for line in proc.stderr.strip().splitlines() if "Profiler" not in line]
-    assert len(lines) == 1 and "not finite after iteration" in lines[0] and "smaller --learning-rate" in lines[0], proc.stderr
+    assert len(lines) == 1 and "not finite after iteration" in lines[0] and "smaller --learning-rate" in lines[0], (
+        proc.stderr
+    )
     assert path.read_bytes() == before, "the last finite checkpoint stays on disk"
-    assert all(torch.isfinite(v).all() for v in torch.load(path, weights_only=True)["agent"].values() if isinstance(v, torch.Tensor))
+    assert all(
+        torch.isfinite(v).all()
+        for v in torch.load(path, weights_only=True)["agent"].values()
+        if isinstance(v, torch.Tensor)
+    )
 
 
 @pytest.mark.parametrize("script", ["ppo_continuous.py"])
 def test_compile_runs_the_same_algorithm(script, tmp_path, monkeypatch):
     # --compile changes how the update runs, not what it computes: the same losses, to float tolerance.
-    monkeypatch.setenv("TORCH_LOGS", "graph_code")  # torch prints each graph it compiles, to tell that it compiled at all
+    monkeypatch.setenv(
+        "TORCH_LOGS", "graph_code"
+    )  # torch prints each graph it compiles, to tell that it compiled at all
     eager, eager_proc = train_tiny(script, tmp_path, "eager", "--seed", "5")
     compiled, compiled_proc = train_tiny(script, tmp_path, "compiled", "--seed", "5", "--compile")
     assert "TRACED GRAPH" not in eager_proc.stderr and "TRACED GRAPH" in compiled_proc.stderr
     a, b = tb_scalars(eager), tb_scalars(compiled)
-    assert a["charts/episodic_return"][:3] == b["charts/episodic_return"][:3], "the first rollout samples the same actions"
+    assert a["charts/episodic_return"][:3] == b["charts/episodic_return"][:3], (
+        "the first rollout samples the same actions"
+    )
     for tag in ["losses/policy_loss", "losses/value_loss", "losses/approx_kl"]:
         np.testing.assert_allclose([v for _, v in a[tag]], [v for _, v in b[tag]], rtol=1e-3, atol=1e-5, err_msg=tag)
 
@@ -321,6 +386,8 @@ def test_video_follows_the_walker(tmp_path):
         return int(body[-1])
 
     tracked = module.make_env("Hopper-v5", capture_video=True, video_dir=str(tmp_path / "tracked"))
-    fixed = gym.wrappers.RecordVideo(gym.make("Hopper-v5", render_mode="rgb_array", camera_id=-1), str(tmp_path / "fixed"))
+    fixed = gym.wrappers.RecordVideo(
+        gym.make("Hopper-v5", render_mode="rgb_array", camera_id=-1), str(tmp_path / "fixed")
+    )
     assert last_frame_body_pixels(tracked, tmp_path / "tracked") > 2000
     assert last_frame_body_pixels(fixed, tmp_path / "fixed") < 30, "the check tells a visible robot from empty floor"

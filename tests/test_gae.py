@@ -36,9 +36,12 @@ def as_tensors(*arrays):
 
 @settings(max_examples=60, deadline=None)
 @given(
-    T=st.integers(1, 12), N=st.integers(1, 3),
-    gamma=st.floats(0.0, 1.0), lam=st.floats(0.0, 1.0), seed=st.integers(0, 2**31 - 1),
-)  # fmt: skip
+    T=st.integers(1, 12),
+    N=st.integers(1, 3),
+    gamma=st.floats(0.0, 1.0),
+    lam=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**31 - 1),
+)
 def test_matches_double_loop(T, N, gamma, lam, seed):
     rng = np.random.default_rng(seed)
     rewards, values, next_values = rng.normal(size=(3, T, N))

@@ -42,7 +42,9 @@ def test_kl_is_zero_for_identical_distributions_and_sums_dimensions():
     torch.testing.assert_close(kl, torch.zeros(5))
     # independent dimensions: the KL of the whole is the sum over dimensions
     other = mean + 1.0
-    per_dim = [gaussian_kl(mean[:, i : i + 1], logstd[i : i + 1], other[:, i : i + 1], logstd[i : i + 1]) for i in range(3)]
+    per_dim = [
+        gaussian_kl(mean[:, i : i + 1], logstd[i : i + 1], other[:, i : i + 1], logstd[i : i + 1]) for i in range(3)
+    ]
     torch.testing.assert_close(gaussian_kl(mean, logstd, other, logstd), sum(per_dim))
 
 
@@ -114,7 +116,18 @@ def test_beta_is_logged_adapted_and_restored_on_resume(tmp_path):
 def test_fixed_beta_stays_fixed(tmp_path):
     script, cfg = "ppo_kl_penalty.py", TINY["ppo_kl_penalty.py"]
     run_dir = tmp_path / "run"
-    run_cli(script, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", run_dir, "--init-beta", "3", "--no-adaptive-beta", cwd=tmp_path)
+    run_cli(
+        script,
+        "--env-id",
+        cfg["env_id"],
+        *cfg["tiny"],
+        "--run-dir",
+        run_dir,
+        "--init-beta",
+        "3",
+        "--no-adaptive-beta",
+        cwd=tmp_path,
+    )
     assert [v for _, v in tb_scalars(run_dir)["losses/beta"]] == [3.0, 3.0]
     assert np.isfinite([v for _, v in tb_scalars(run_dir)["losses/kl"]]).all()
 

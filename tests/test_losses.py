@@ -52,7 +52,9 @@ def test_clip_equals_cpi_at_ratio_one_in_value_and_gradient(a, eps):
         cpi_ratio = torch.ones_like(adv, requires_grad=True)
         (-(cpi_ratio * adv).mean()).backward()
         np.testing.assert_allclose(ratio.grad.numpy(), cpi_ratio.grad.numpy(), err_msg=name)
-        assert load_script(name).clipped_surrogate_loss(torch.ones_like(adv), adv, eps).item() == pytest.approx(-adv.mean().item())
+        assert load_script(name).clipped_surrogate_loss(torch.ones_like(adv), adv, eps).item() == pytest.approx(
+            -adv.mean().item()
+        )
 
 
 @settings(max_examples=200, deadline=None)

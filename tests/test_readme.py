@@ -26,11 +26,19 @@ def test_readme_is_short():
 
 
 def test_every_detail_links_to_a_line_that_cites_it():
-    rows = re.findall(r"^\| (core|continuous|atari) (\d+) \|.*\[(ppo_\w+\.py L\d+)\]\((ppo_\w+\.py)#L(\d+)\) \|$", README, re.M)
-    expected = {("core", n) for n in range(1, 14)} | {("continuous", n) for n in range(1, 10)} | {("atari", n) for n in range(1, 10)}
+    rows = re.findall(
+        r"^\| (core|continuous|atari) (\d+) \|.*\[(ppo_\w+\.py L\d+)\]\((ppo_\w+\.py)#L(\d+)\) \|$", README, re.M
+    )
+    expected = (
+        {("core", n) for n in range(1, 14)}
+        | {("continuous", n) for n in range(1, 10)}
+        | {("atari", n) for n in range(1, 10)}
+    )
     assert {(f, int(n)) for f, n, _, _, _ in rows} == expected
     for family, number, link_text, script, line in rows:
-        assert link_text == f"{script} L{line}", f"README's link text {link_text!r} does not say the line it goes to, {script}#L{line}"
+        assert link_text == f"{script} L{line}", (
+            f"README's link text {link_text!r} does not say the line it goes to, {script}#L{line}"
+        )
         source = (ROOT / script).read_text().splitlines()
         cited_at = [i + 1 for i, text in enumerate(source) if (family, int(number)) in mentioned_details(text)]
         assert (family, int(number)) in mentioned_details(source[int(line) - 1]), (
@@ -41,7 +49,9 @@ def test_every_detail_links_to_a_line_that_cites_it():
 def test_every_flag_the_readme_names_exists():
     flags = {"--" + f.name.replace("_", "-") for s in SCRIPTS for f in dataclasses.fields(load_script(s).Args)}
     flags |= {"--no-" + f[2:] for f in flags} | {"--help"}
-    named = set(re.findall(r"`(--[a-z][\w-]*)", README)) | set(re.findall(r"python ppo_\w+\.py[^\n`#]*?(--[a-z][\w-]*)", README))
+    named = set(re.findall(r"`(--[a-z][\w-]*)", README)) | set(
+        re.findall(r"python ppo_\w+\.py[^\n`#]*?(--[a-z][\w-]*)", README)
+    )
     for command in re.findall(r"^python (ppo_\w+\.py) (.*?)(?:#|$)", README, re.M):
         named |= set(re.findall(r"--[a-z][\w-]*", command[1]))
     assert named and named <= flags, named - flags
@@ -49,7 +59,11 @@ def test_every_flag_the_readme_names_exists():
 
 def test_kl_flags_are_documented():
     base = {f.name for f in dataclasses.fields(load_script("ppo_continuous.py").Args)}
-    extra = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(load_script("ppo_kl_penalty.py").Args) if f.name not in base}
+    extra = {
+        "--" + f.name.replace("_", "-")
+        for f in dataclasses.fields(load_script("ppo_kl_penalty.py").Args)
+        if f.name not in base
+    }
     assert extra == {"--kl-target", "--init-beta", "--adaptive-beta"}
     for flag in extra:
         assert f"| `{flag}` | KL |" in README, flag
