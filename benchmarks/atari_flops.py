@@ -11,6 +11,7 @@ uses. The FLOPs are counted analytically: 2 per multiply-add, and backward = 2 x
 
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -34,6 +35,20 @@ def seconds_per_call(fn, n):
     return (time.perf_counter() - start) / n
 
 
+def update(agent, optimizer, batch, memory_format):
+    """One update step on a minibatch: forward, backward and Adam."""
+    hidden = agent.network(batch.contiguous(memory_format=memory_format).float() / 255.0)
+    loss = agent.actor(hidden).mean() + agent.critic(hidden).mean()
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+
+
+def inference(agent, frames, memory_format):
+    """The CNN's forward pass on a rollout step's frames."""
+    return agent.network(frames.contiguous(memory_format=memory_format).float() / 255.0)
+
+
 def main():
     lines = []
     print = lines.append  # noqa: A001  (collect the table, then print and save it)
@@ -46,7 +61,7 @@ def main():
     for threads in (1, 2):
         torch.set_num_threads(threads)
         a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
-        matmul = 2 * 1024**3 / seconds_per_call(lambda: a @ b, 20) / 1e9
+        matmul = 2 * 1024**3 / seconds_per_call(partial(torch.matmul, a, b), 20) / 1e9
         print(f"| {threads} | matmul 1024x1024 | - | - | {matmul:.1f} | 1.00 |")
         for layout in ("NCHW", "channels_last"):
             agent = ppo_atari.Agent(4)
@@ -54,24 +69,15 @@ def main():
             agent = agent.to(memory_format=memory_format)
             optimizer = torch.optim.Adam(agent.parameters(), lr=1e-4, eps=1e-5, fused=True)
             batch = torch.randint(0, 256, (256, 4, 84, 84), dtype=torch.uint8)
-
-            def update():
-                hidden = agent.network(batch.contiguous(memory_format=memory_format).float() / 255.0)
-                loss = agent.actor(hidden).mean() + agent.critic(hidden).mean()
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
-
-            t = seconds_per_call(update, 8)
+            t = seconds_per_call(partial(update, agent, optimizer, batch, memory_format), 8)
             rate = 3 * 2 * MACS * 256 / t / 1e9
             print(
-                f"| {threads} | update, minibatch 256 | {layout} | {t * 1e3:.0f} ms | {rate:.1f} | {rate / matmul:.2f} |"
+                f"| {threads} | update, minibatch 256 | {layout} | {t * 1e3:.0f} ms | {rate:.1f}"
+                f" | {rate / matmul:.2f} |"
             )
             frames = torch.randint(0, 256, (8, 4, 84, 84), dtype=torch.uint8)
             with torch.inference_mode():
-                t = seconds_per_call(
-                    lambda: agent.network(frames.contiguous(memory_format=memory_format).float() / 255.0), 40
-                )
+                t = seconds_per_call(partial(inference, agent, frames, memory_format), 40)
             rate = 2 * MACS * 8 / t / 1e9
             print(
                 f"| {threads} | inference, batch 8 | {layout} | {t * 1e3:.2f} ms | {rate:.1f} | {rate / matmul:.2f} |"

@@ -60,10 +60,13 @@ def read_run(run_dir):
     returns = acc.Scalars("charts/episodic_return")
     lengths = acc.Scalars("charts/episodic_length")
     checkpoint = torch.load(Path(run_dir) / "checkpoint.pt", map_location="cpu", weights_only=True)
-    rows = [(r.step, r.value, int(l.value)) for r, l in zip(returns, lengths)]
+    rows = [(ret.step, ret.value, int(length.value)) for ret, length in zip(returns, lengths, strict=True)]
     beta, series = None, None
     if "losses/beta" in acc.Tags()["scalars"]:
-        series = [(b.step, b.value, k.value) for b, k in zip(acc.Scalars("losses/beta"), acc.Scalars("losses/kl"))]
+        series = [
+            (b.step, b.value, k.value)
+            for b, k in zip(acc.Scalars("losses/beta"), acc.Scalars("losses/kl"), strict=True)
+        ]
         # ppo_kl_penalty.py: the range of beta over the whole run and over its first 90% of updates
         betas = [e.value for e in acc.Scalars("losses/beta")]
         early = betas[: int(0.9 * len(betas))] or betas
@@ -72,7 +75,7 @@ def read_run(run_dir):
     updates = None
     if all(f"losses/{name}" in tags for name in UPDATE_STATS):
         columns = [acc.Scalars(f"losses/{name}") for name in UPDATE_STATS]
-        updates = [(events[0].step, *(e.value for e in events)) for events in zip(*columns)]
+        updates = [(events[0].step, *(e.value for e in events)) for events in zip(*columns, strict=True)]
     return checkpoint, rows, beta, series, updates
 
 

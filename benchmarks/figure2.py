@@ -52,7 +52,7 @@ def first_update(**overrides):
         def get_action_and_value(self, obs, action=None):
             out = super().get_action_and_value(obs, action)
             if action is None:  # a rollout step (the update passes the batch's actions)
-                for key, value in zip(("obs", "actions", "logprobs"), (obs, out[0], out[1])):
+                for key, value in zip(("obs", "actions", "logprobs"), (obs, out[0], out[1]), strict=True):
                     noted[key].append(value.detach().clone())
             return out
 
@@ -81,9 +81,8 @@ def interpolate(alphas, **overrides):
 
     _, before, after, rollout, advantages, eps = first_update(**overrides)
     advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-    old = {
-        k: v.clone() for k, v in before.state_dict().items() if k.startswith(POLICY)
-    }  # a copy: loading writes in place
+    # old is a copy: loading writes in place
+    old = {k: v.clone() for k, v in before.state_dict().items() if k.startswith(POLICY)}
     new = {k: v for k, v in after.state_dict().items() if k.startswith(POLICY)}
     with torch.no_grad():
         pi_old = Normal(before.actor_mean(rollout["obs"]), before.actor_logstd.exp())
@@ -112,7 +111,7 @@ def plot(rows, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    a, cpi, clip_term, clip, kl = zip(*rows)
+    a, cpi, clip_term, clip, kl = zip(*rows, strict=True)
     fig, ax = plt.subplots(figsize=(6, 3.8))
     ax.plot(a, cpi, label="$L^{CPI}$ = E[r A]")
     ax.plot(a, clip_term, label="E[clip(r, 1-ε, 1+ε) A]")
@@ -142,7 +141,8 @@ def main():
     OUT.mkdir(parents=True, exist_ok=True)
     with open(OUT / "figure2.csv", "w", newline="") as f:
         f.write(
-            f"# command: python benchmarks/figure2.py --seed {args.seed} --max-alpha {args.max_alpha} --points {args.points}\n"
+            f"# command: python benchmarks/figure2.py --seed {args.seed} --max-alpha {args.max_alpha}"
+            f" --points {args.points}\n"
         )
         commit = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
@@ -155,7 +155,8 @@ def main():
     peak = max(rows, key=lambda row: row[3])
     at_one = min(rows, key=lambda row: abs(row[0] - 1.0))
     print(
-        f"wrote {OUT / 'figure2.csv'} and figure2.png: L^CLIP peaks at a = {peak[0]:.2f}; the update's mean KL is {at_one[4]:.4f}"
+        f"wrote {OUT / 'figure2.csv'} and figure2.png: L^CLIP peaks at a = {peak[0]:.2f};"
+        f" the update's mean KL is {at_one[4]:.4f}"
     )
 
 

@@ -91,7 +91,8 @@ def main():
     out.parent.mkdir(parents=True, exist_ok=True)
     with open(out, "w", newline="") as f:
         f.write(
-            f"# command: python benchmarks/random_score.py --env-id {args.env_id} --episodes {args.episodes} --seed {args.seed}\n"
+            f"# command: python benchmarks/random_score.py --env-id {args.env_id} --episodes {args.episodes}"
+            f" --seed {args.seed}\n"
         )
         f.write(f"# versions: {versions()}\n# machine: {machine()}\n")
         writer = csv.writer(f)
@@ -100,7 +101,8 @@ def main():
     write_table(out.parent)
     returns = [r for _, r, _ in rows]
     print(
-        f"{args.env_id}: random policy {statistics.mean(returns):.2f} ± {statistics.pstdev(returns):.2f} over {len(returns)} episodes; wrote {out.relative_to(ROOT)}"
+        f"{args.env_id}: random policy {statistics.mean(returns):.2f} ± {statistics.pstdev(returns):.2f}"
+        f" over {len(returns)} episodes; wrote {out.relative_to(ROOT)}"
     )
 
 

@@ -165,13 +165,13 @@ def normalized_runs(runs, random, envs, best_of):
 
 
 def normalized_by_env(runs, random, envs, best_of):
-    """{variant: {env: (mean normalized score of its runs there, number of runs)}}, on the scale of normalized_scores."""
+    """{variant: {env: (mean normalized score of its runs there, number of runs)}}, scaled as in normalized_scores."""
     per_run = normalized_runs(runs, random, envs, best_of)
     return {v: {env: (statistics.mean(xs), len(xs)) for env, xs in per_env.items()} for v, per_env in per_run.items()}
 
 
 def standard_errors(runs, random, envs, best_of):
-    """{variant: the standard error over seeds of its normalized score}, for the variants with 2 or more runs on every env.
+    """{variant: the standard error over seeds of its normalized score}, for the variants with 2+ runs on every env.
 
     The score is the mean of N = sum of n_e runs, n_e on env e, whose scores vary by s_e² from seed to seed there; its
     variance is sum(n_e s_e²) / N². The envs themselves are fixed, and so is each env's scale (its best variant's mean).
@@ -220,13 +220,25 @@ def verdict(norm, rows, se=None):
     parts = [
         f"clip 0.2 is the best of the 11 rows, ahead of {runner_up} {gap('clip0.2', runner_up)}"
         if best == "clip0.2"
-        else f"clip 0.2 ({score['clip0.2']:.2f}) is not the best row: {best} is ({score[best]:.2f}), ahead {gap(best, 'clip0.2')}",
+        else (
+            f"clip 0.2 ({score['clip0.2']:.2f}) is not the best row: "
+            f"{best} is ({score[best]:.2f}), ahead {gap(best, 'clip0.2')}"
+        ),
         f"no clipping or penalty is the worst, behind {second_worst} {gap(second_worst, 'no-clip')}"
         if worst == "no-clip"
-        else f"no clipping ({score['no-clip']:.2f}) is not the worst row: {worst} is ({score[worst]:.2f}), behind it {gap('no-clip', worst)}",
-        f"every adaptive KL row is below clip 0.2: the best, {best_kl} ({score[best_kl]:.2f}), is behind it {gap('clip0.2', best_kl)}"
+        else (
+            f"no clipping ({score['no-clip']:.2f}) is not the worst row: "
+            f"{worst} is ({score[worst]:.2f}), behind it {gap('no-clip', worst)}"
+        ),
+        (
+            "every adaptive KL row is below clip 0.2: "
+            f"the best, {best_kl} ({score[best_kl]:.2f}), is behind it {gap('clip0.2', best_kl)}"
+        )
         if score[best_kl] < score["clip0.2"]
-        else f"adaptive KL {best_kl} ({score[best_kl]:.2f}) is not below clip 0.2 ({score['clip0.2']:.2f}): it is ahead {gap(best_kl, 'clip0.2')}",
+        else (
+            f"adaptive KL {best_kl} ({score[best_kl]:.2f}) is not below clip 0.2 ({score['clip0.2']:.2f}): "
+            f"it is ahead {gap(best_kl, 'clip0.2')}"
+        ),
     ]
     holds = best == "clip0.2" and worst == "no-clip" and score[best_kl] < score["clip0.2"]
     text = (
@@ -258,7 +270,8 @@ def provenance(runs):
     steps = sorted({int(r.meta["global_step"]) for r in runs})
     wall = [float(r.meta["wall_time_s"]) for r in runs if "wall_time_s" in r.meta]
     return [
-        f"- Seeds: {', '.join(map(str, sorted({r.seed for r in runs})))}; {len(runs)} run{'s' if len(runs) > 1 else ''}.",
+        f"- Seeds: {', '.join(map(str, sorted({r.seed for r in runs})))}; "
+        f"{len(runs)} run{'s' if len(runs) > 1 else ''}.",
         f"- Budget: {', '.join(f'{s:,}' for s in steps)} environment steps per run.",
         f"- Commits: {values('commit')}.",
         f"- Versions: {values('versions')}.",
@@ -323,7 +336,8 @@ def best_window(rows, window=100):
 
 def run_table(runs):
     lines = [
-        "| env | variant | seed | steps | episodes | score | best 100 episodes (at step) | wall time | commit | beta range |",
+        "| env | variant | seed | steps | episodes | score | best 100 episodes (at step) | wall time | commit"
+        " | beta range |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(runs, key=lambda r: (r.env_id, r.variant, r.seed)):
@@ -365,7 +379,8 @@ def tables(folder, runs, reference, results, level="##"):
             "Per env the random policy scores 0 and the best of the variants *run here* scores 1; the paper",
             "took the best of all 11 of its settings, so where fewer are run here the best is easier to be,",
             "and the figures are comparable with the paper's in their order more than in their values.",
-            "A score is shown ± its standard error over seeds where every env has 2 or more runs (the paper gives none).",
+            "A score is shown ± its standard error over seeds where every env has 2 or more runs"
+            " (the paper gives none).",
             "",
             "| setting | ours: normalized score | runs | paper, Table 1 |",
             "|---|---|---|---|",
@@ -389,12 +404,19 @@ def tables(folder, runs, reference, results, level="##"):
         over = (
             ""
             if set(norm_envs) == set(envs)
-            else f" Until then the scores are over {', '.join(norm_envs) or 'no env'}, where every row run so far has run."
+            else (
+                f" Until then the scores are over {', '.join(norm_envs) or 'no env'},"
+                " where every row run so far has run."
+            )
         )
         lines += [
             "",
             text
-            or f"The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping) waits for all 11 rows on every env and seed: {sum(r.variant in rows for r in runs)} of {grid} runs are in.{over}",
+            or (
+                "The verdict on the paper's order (clip 0.2 best, no clipping worst, adaptive KL below clipping)"
+                f" waits for all 11 rows on every env and seed: {sum(r.variant in rows for r in runs)} of {grid} runs"
+                f" are in.{over}"
+            ),
         ]
         by_env = normalized_by_env(runs, random, norm_envs, best_of) if norm_envs else {}
         lines += (
@@ -497,11 +519,12 @@ def atari_table(runs, reference, variants, results):
         wall = [float(r.meta["wall_time_s"]) for r in runs if r.variant == v and "wall_time_s" in r.meta]
         if wall:
             lines.append(
-                f"- {ATARI_NAMES.get(v, v)}: a run took {statistics.mean(wall) / 60:.0f} min of wall time on average here"
-                f" ({len(wall)} run{'s' if len(wall) > 1 else ''}; other work may have shared the machine)."
+                f"- {ATARI_NAMES.get(v, v)}: a run took {statistics.mean(wall) / 60:.0f} min of wall time on average"
+                f" here ({len(wall)} run{'s' if len(wall) > 1 else ''}; other work may have shared the machine)."
             )
     lines.append(
-        "- The paper's budget, 10M steps, on a GPU (not yet tested on one here): `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`."
+        "- The paper's budget, 10M steps, on a GPU (not yet tested on one here):"
+        " `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`."
     )
     return lines
 
@@ -614,12 +637,14 @@ def cost_block(results=RESULTS):
         per_run = statistics.mean(minutes)
         todo = sum(not job.csv.exists() for job in ours)
         lines += [
-            f"A 1M-step MuJoCo run took {per_run:.0f} min of wall time on one core here, on average over {len(minutes)} runs."
-            f" Table 1 as the paper ran it, {len(full)} runs ({len(SUITES['table1'].variants)} rows x 7 envs x 3 seeds), is then"
-            f" about {len(full) * per_run / 60:.0f} CPU-hours; on our 4 envs ({', '.join(TABLE1_ENVS)}) it is {len(ours)} runs,"
-            f" about {len(ours) * per_run / 60:.0f} CPU-hours, "
+            f"A 1M-step MuJoCo run took {per_run:.0f} min of wall time on one core here, on average over"
+            f" {len(minutes)} runs. Table 1 as the paper ran it, {len(full)} runs"
+            f" ({len(SUITES['table1'].variants)} rows x 7 envs x 3 seeds), is then about"
+            f" {len(full) * per_run / 60:.0f} CPU-hours; on our 4 envs ({', '.join(TABLE1_ENVS)}) it is"
+            f" {len(ours)} runs, about {len(ours) * per_run / 60:.0f} CPU-hours, "
             + (
-                f"of which {todo} run{'s are' if todo > 1 else ' is'} not done yet ({todo * per_run / 60:.0f} CPU-hours)."
+                f"of which {todo} run{'s are' if todo > 1 else ' is'} not done yet"
+                f" ({todo * per_run / 60:.0f} CPU-hours)."
                 if todo
                 else "all of them done."
             )
@@ -645,8 +670,9 @@ def quickstart_block(results=RESULTS):
     if not (runs and minutes):
         return "\n".join([QUICK_START, "- **Training**: no benchmark run of Hopper-v5 is committed yet.", QUICK_END])
     line = (
-        f"- **Training** took {minutes[0]:.0f}–{minutes[-1]:.0f} min per run for the benchmarks, on one core of a 2-core"
-        f" machine, and ended with a mean return of {scores[0]:,.0f}–{scores[-1]:,.0f} over the last 100 episodes"
+        f"- **Training** took {minutes[0]:.0f}–{minutes[-1]:.0f} min per run for the benchmarks,"
+        f" on one core of a 2-core machine, and ended with a mean return of {scores[0]:,.0f}–{scores[-1]:,.0f}"
+        " over the last 100 episodes"
         f" ({len(runs)} seeds; see [Results](#results))."
     )
     return "\n".join([QUICK_START, line, QUICK_END])
@@ -760,8 +786,9 @@ def beta_section(folder):
         "The last two columns bound what the last 10% of the steps did to the score: the mean return of the last",
         "100 episodes at 90% of the steps, and at the end (the run's score), averaged over the seeds.",
         "",
-        "| env | setting | seeds | median beta, first 90% of updates | beta at the end | updates in the last 10% with KL < d_targ / 1.5"
-        " | final run of updates with KL < d_targ / 1.5 | score at 90% of the steps | score at the end |",
+        "| env | setting | seeds | median beta, first 90% of updates | beta at the end"
+        " | updates in the last 10% with KL < d_targ / 1.5 | final run of updates with KL < d_targ / 1.5"
+        " | score at 90% of the steps | score at the end |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for env in sorted({key[0] for key in series}):
@@ -784,22 +811,24 @@ def beta_section(folder):
             keys = [key for key in sorted(series) if key[:2] == (env, variant)]
             betas, low_kl = [series[key] for key in keys], [targets[key] / 1.5 for key in keys]
             cut = [int(0.9 * len(rows)) for rows in betas]
-            early = statistics.mean(statistics.median(r[1] for r in rows[:c]) for rows, c in zip(betas, cut))
+            early = statistics.mean(
+                statistics.median(r[1] for r in rows[:c]) for rows, c in zip(betas, cut, strict=True)
+            )
             end = statistics.mean(rows[-1][1] for rows in betas)
             low = statistics.mean(
-                statistics.mean(r[2] < kl for r in rows[c:]) for rows, c, kl in zip(betas, cut, low_kl)
+                statistics.mean(r[2] < kl for r in rows[c:]) for rows, c, kl in zip(betas, cut, low_kl, strict=True)
             )
             streak = [
                 next((i for i, r in enumerate(reversed(rows)) if r[2] >= kl), len(rows))
-                for rows, kl in zip(betas, low_kl)
+                for rows, kl in zip(betas, low_kl, strict=True)
             ]
             before = statistics.mean(
                 curve(runs[key].rows, [0.9 * int(runs[key].meta["global_step"])])[0] for key in keys
             )
             after = statistics.mean(runs[key].score for key in keys)
             lines.append(
-                f"| {env} | {variant} | {len(keys)} | {early:.3g} | {end:.3g} | {low:.0%} | {', '.join(map(str, streak))}"
-                f" | {fmt(before)} | {fmt(after)} |"
+                f"| {env} | {variant} | {len(keys)} | {early:.3g} | {end:.3g} | {low:.0%}"
+                f" | {', '.join(map(str, streak))} | {fmt(before)} | {fmt(after)} |"
             )
     lines += [""] + [f"![beta, {env}](curves/beta-{env}.png)" for env in sorted({key[0] for key in series})]
     return lines

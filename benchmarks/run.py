@@ -122,7 +122,8 @@ SUITES = {
         ["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4", "BeamRiderNoFrameskip-v4"],
         [1, 2, 3],
         1_000_000,
-        "ppo_atari.py defaults (the paper's Table 5) with --compile, alpha annealed over the budget; SB3's PPO (RL Zoo) beside it",
+        "ppo_atari.py defaults (the paper's Table 5) with --compile, alpha annealed over the budget;"
+        " SB3's PPO (RL Zoo) beside it",
         only={"sb3": (["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4"], [1])},
     ),
 }
@@ -271,7 +272,8 @@ def log_attempt(job, started, commit, elapsed, returncode, resumed):
     """One line per process a run took: when, at which commit, how long, and how it ended."""
     with open(job.run_dir / "attempts.txt", "a") as f:
         f.write(
-            f"{time.strftime('%Y-%m-%dT%H:%M:%S', time.gmtime(started))}\t{commit}\t{elapsed:.0f}\t{returncode}\t{'resume' if resumed else 'start'}\n"
+            f"{time.strftime('%Y-%m-%dT%H:%M:%S', time.gmtime(started))}\t{commit}\t{elapsed:.0f}\t{returncode}"
+            f"\t{'resume' if resumed else 'start'}\n"
         )
 
 

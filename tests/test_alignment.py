@@ -12,7 +12,7 @@ from conftest import ROOT, SCRIPTS, load_script
 # Top-level definitions that a variant is meant to change.
 CHANGED_ON_PURPOSE = {
     ("ppo_continuous.py", "ppo_kl_penalty.py"): {"Args", "save_checkpoint", "check_args", "train"},
-    # Atari has its own envs, network, rollout and evaluation; the math, the checkpoints and the command line are shared.
+    # Atari has its own envs, network, rollout and evaluation; it shares the math, the checkpoints and the command line.
     ("ppo_atari.py", "ppo_continuous.py"): {"Args", "Agent", "check_args", "train", "evaluate"},
 }
 MUST_SHARE = {
@@ -94,7 +94,7 @@ def test_similarity_measure_can_fail():
 def test_sections_come_in_the_same_order(script):
     source = (ROOT / script).read_text()
     positions = [source.find(f"\n{section}") for section in SECTIONS]
-    assert -1 not in positions and positions == sorted(positions), dict(zip(SECTIONS, positions))
+    assert -1 not in positions and positions == sorted(positions), dict(zip(SECTIONS, positions, strict=True))
     names = list(top_level_sources(script))
     assert (
         names.index("Args")

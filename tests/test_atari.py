@@ -1,5 +1,7 @@
 """ppo_atari.py: the preprocessing of the ale-py vector env, episodic life, and the CNN."""
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 import torch
@@ -114,7 +116,7 @@ def test_games_are_cut_at_max_episode_frames():
     e = envs(num_envs=1, env_id="PongNoFrameskip-v4", max_episode_frames=400)  # a Pong game lasts thousands of frames
     _, info = e.reset(seed=0)
     frames = info["episode_frame_number"]
-    for step in range(1, 200):
+    for step in range(1, 200):  # noqa: B007 -- step is read after the loop: the steps to the truncation
         _, _, term, trunc, info = e.step(np.zeros(1, dtype=np.int64))
         if term[0] or trunc[0]:
             break
@@ -126,7 +128,8 @@ def test_games_are_cut_at_max_episode_frames():
 
 
 def play_one_game(env_id, seed, training=False):
-    """A whole game of random actions in ppo_atari.py's env: its reset's frame count, and each step's action, reward and lives."""
+    """A whole game of random actions in ppo_atari.py's env: its reset's frame count, and each step's action, reward
+    and lives."""
     e = envs(num_envs=1, training=training, env_id=env_id)
     rng = np.random.default_rng(seed)
     _, info = e.reset(seed=seed)
@@ -203,7 +206,7 @@ def test_fire_on_life_loss(fire_on_life_loss, tmp_path, monkeypatch):
     fire = [a.name for a in atari.make_envs(atari.Args(num_envs=1)).ale.get_action_set()].index("FIRE")
     after_lost_life = [
         next_actions[i]
-        for (_, term, frames), (next_actions, _, new_frames) in zip(steps, steps[1:])
+        for (_, term, frames), (next_actions, _, new_frames) in pairwise(steps)
         for i in np.flatnonzero(term & (new_frames > frames))
     ]
     assert len(after_lost_life) > 5

@@ -404,14 +404,12 @@ def test_an_older_env_version_is_compared_with_the_default_on_the_newest(tmp_pat
         for line in lines
         if line.startswith("| InvertedDoublePendulum") and "reaches" not in line and line.count("|") == 6
     ]
-    assert (
-        rows
-        == [
-            "| InvertedDoublePendulum-v5 | clip0.2 | 6,000 ± 1,000 (3) | – | no (8,000) |",
-            f"| InvertedDoublePendulum-v5 | const-lr | 6,100 ± 1,000 (3) | +100.0 ± {se:,.1f} | no (8,000) |",
-            f"| InvertedDoublePendulum-v4 | clip0.2 | 8,000 ± 1,000 (3) | **+2,000.0 ± {se:,.1f}** | yes (8,000) |",  # beyond 2 SE
-        ]
-    )
+    assert rows == [
+        "| InvertedDoublePendulum-v5 | clip0.2 | 6,000 ± 1,000 (3) | – | no (8,000) |",
+        f"| InvertedDoublePendulum-v5 | const-lr | 6,100 ± 1,000 (3) | +100.0 ± {se:,.1f} | no (8,000) |",
+        # v4's gap is beyond 2 standard errors: in bold
+        f"| InvertedDoublePendulum-v4 | clip0.2 | 8,000 ± 1,000 (3) | **+2,000.0 ± {se:,.1f}** | yes (8,000) |",
+    ]
 
 
 @pytest.mark.parametrize("kl003_score, holds", [(80.0, True), (120.0, False)])
@@ -430,7 +428,8 @@ def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds
     assert f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:**" in text
     if holds:  # one seed: no standard errors, so the gaps stand alone
         assert (
-            "clip 0.2 is the best of the 11 rows, ahead of kl0.03 by 0.20; no clipping or penalty is the worst, behind clip0.1 by 0.40;"
+            "clip 0.2 is the best of the 11 rows, ahead of kl0.03 by 0.20;"
+            " no clipping or penalty is the worst, behind clip0.1 by 0.40;"
             " every adaptive KL row is below clip 0.2: the best, kl0.03 (0.80), is behind it by 0.20."
         ) in text
     else:  # kl0.03 (1.20 on the scale where the best, itself, is 1) beats clip 0.2 (100 / 120)
@@ -540,7 +539,7 @@ def test_learning_curve_is_the_trailing_100_episode_mean():
     rows = [(10 * (i + 1), float(i), 1) for i in range(250)]
     grid = [5, 10, 995, 1000, 2500, 3000]
     got = report.curve(rows, grid)
-    for step, value in zip(grid, got):
+    for step, value in zip(grid, got, strict=True):
         finished = [r for s, r, _ in rows if s <= step][-100:]
         if finished:
             assert value == pytest.approx(sum(finished) / len(finished))

@@ -37,7 +37,10 @@ def test_every_script_is_configured():
 
 
 def test_import_runs_nothing_heavy(script):
-    code = f"import sys; sys.path.insert(0, {str(ROOT)!r}); import {script[:-3]}; print(sorted(m for m in ('mujoco', 'ale_py', 'gymnasium', 'tyro') if m in sys.modules))"
+    code = (
+        f"import sys; sys.path.insert(0, {str(ROOT)!r}); import {script[:-3]}; "
+        "print(sorted(m for m in ('mujoco', 'ale_py', 'gymnasium', 'tyro') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120).stdout
     assert out.strip() == "[]"
 
@@ -59,7 +62,7 @@ def test_help_lists_the_flags(script, tmp_path):
 
 def test_smoke_run_logs_and_checkpoints(script, tiny_run):
     run_dir, proc = tiny_run(script)
-    tiny = dict(zip(TINY[script]["tiny"][::2], map(float, TINY[script]["tiny"][1::2])))
+    tiny = dict(zip(TINY[script]["tiny"][::2], map(float, TINY[script]["tiny"][1::2]), strict=True))
     batch, total = int(tiny.get("--num-envs", 1) * tiny["--num-steps"]), int(tiny["--total-timesteps"])
     checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert checkpoint["global_step"] == total
@@ -69,13 +72,13 @@ def test_smoke_run_logs_and_checkpoints(script, tiny_run):
     assert [step for step, _ in scalars["charts/SPS"]] == list(range(batch, total + 1, batch))
     for tag in ["losses/policy_loss", "losses/value_loss", "losses/approx_kl"]:
         assert all(np.isfinite(v) for _, v in scalars[tag])
-    # The minimized loss is minus eq. 9, -(L^CLIP - c1 L^VF + c2 S), with the script's c1 and c2 at full weight (that L^VF
-    # is the unhalved squared error is test_losses' job).
+    # The minimized loss is minus eq. 9, -(L^CLIP - c1 L^VF + c2 S), with the script's c1 and c2 at full weight
+    # (that L^VF is the unhalved squared error is test_losses' job).
     args = load_script(script).Args()
     ent_coef = tiny.get("--ent-coef", args.ent_coef)
     assert ent_coef > 0, "without an entropy bonus the check below cannot see the sign of its term"
     for (_, total), (_, pg), (_, v), (_, ent) in zip(
-        *(scalars[f"losses/{k}"] for k in ("loss", "policy_loss", "value_loss", "entropy"))
+        *(scalars[f"losses/{k}"] for k in ("loss", "policy_loss", "value_loss", "entropy")), strict=True
     ):
         assert total == pytest.approx(pg - ent_coef * ent + args.vf_coef * v, rel=1e-4, abs=1e-6)
     # Nothing is left half-written.
