@@ -17,87 +17,27 @@ SCRIPTS = sorted(p.name for p in ROOT.glob("ppo_*.py"))
 # batch, a run of 32 iterations of 64 steps (long enough to interrupt), and an env it must reject
 # for its action space. The tiny runs have an entropy bonus (Atari's default; the MuJoCo scripts default to
 # none), so that the loss's check sees the sign of its term. A new script must add its line here, or
-# test_every_script_is_configured fails.
+# test_every_script_is_configured fails. Each list of flags is written as its command line, split on spaces.
 TINY = {
     "ppo_continuous.py": {
         "env_id": "Hopper-v5",
-        "tiny": [
-            "--num-steps",
-            "64",
-            "--minibatch-size",
-            "32",
-            "--update-epochs",
-            "2",
-            "--total-timesteps",
-            "128",
-            "--ent-coef",
-            "0.01",
-        ],
-        "interruptible": [
-            "--num-steps",
-            "64",
-            "--minibatch-size",
-            "16",
-            "--update-epochs",
-            "10",
-            "--total-timesteps",
-            "2048",
-        ],
+        "tiny": "--num-steps 64 --minibatch-size 32 --update-epochs 2 --total-timesteps 128 --ent-coef 0.01".split(),
+        "interruptible": "--num-steps 64 --minibatch-size 16 --update-epochs 10 --total-timesteps 2048".split(),
         "wrong_action_space_env": "CartPole-v1",
     },
     "ppo_atari.py": {
         "env_id": "BreakoutNoFrameskip-v4",
         # 3 iterations of 4 envs x 96 steps: long enough for random games of Breakout to end
-        "tiny": [
-            "--num-envs",
-            "4",
-            "--num-steps",
-            "96",
-            "--minibatch-size",
-            "128",
-            "--update-epochs",
-            "1",
-            "--total-timesteps",
-            "1152",
-        ],
-        "interruptible": [
-            "--num-envs",
-            "1",
-            "--num-steps",
-            "64",
-            "--minibatch-size",
-            "32",
-            "--update-epochs",
-            "1",
-            "--total-timesteps",
-            "2048",
-        ],
+        "tiny": "--num-envs 4 --num-steps 96 --minibatch-size 128 --update-epochs 1 --total-timesteps 1152".split(),
+        "interruptible": (
+            "--num-envs 1 --num-steps 64 --minibatch-size 32 --update-epochs 1 --total-timesteps 2048"
+        ).split(),
         "wrong_action_space_env": "Hopper-v5",
     },
     "ppo_kl_penalty.py": {
         "env_id": "Hopper-v5",
-        "tiny": [
-            "--num-steps",
-            "64",
-            "--minibatch-size",
-            "32",
-            "--update-epochs",
-            "2",
-            "--total-timesteps",
-            "128",
-            "--ent-coef",
-            "0.01",
-        ],
-        "interruptible": [
-            "--num-steps",
-            "64",
-            "--minibatch-size",
-            "16",
-            "--update-epochs",
-            "10",
-            "--total-timesteps",
-            "2048",
-        ],
+        "tiny": "--num-steps 64 --minibatch-size 32 --update-epochs 2 --total-timesteps 128 --ent-coef 0.01".split(),
+        "interruptible": "--num-steps 64 --minibatch-size 16 --update-epochs 10 --total-timesteps 2048".split(),
         "wrong_action_space_env": "CartPole-v1",
     },
 }
