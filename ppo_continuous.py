@@ -1,7 +1,8 @@
-"""PPO-Clip for continuous control on MuJoCo, in one file: Proximal Policy Optimization (Schulman et
-al. 2017, arXiv:1707.06347) with the clipped objective L^CLIP of §3 (eq. 7) in Algorithm 1 of §5,
-GAE (eq. 11-12), and the MuJoCo settings of §6.1-6.2 (Table 3) as defaults. Where the paper is silent
-we follow "The 37 Implementation Details of PPO" (Huang et al. 2022), cited as "core detail N" (of
+"""PPO-Clip for continuous control on MuJoCo, in one file.
+
+Proximal Policy Optimization (Schulman et al. 2017, arXiv:1707.06347): the clipped objective L^CLIP of §3, eq. (7),
+in Algorithm 1 of §5, with GAE, eq. (11)-(12), and the MuJoCo settings of §6.1-6.2 (Table 3) as defaults. Where the
+paper is silent we follow "The 37 Implementation Details of PPO" (Huang et al. 2022), cited as "core detail N" (of
 their 13) and "continuous detail N" (of their 9 for continuous actions).
 
     python ppo_continuous.py                          # Hopper-v5, 1M steps
@@ -11,10 +12,13 @@ their 13) and "continuous detail N" (of their 9 for continuous actions).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import re
 import signal
 import sys
+import tempfile
 import time
 from collections import deque
 from dataclasses import asdict, dataclass
@@ -24,61 +28,70 @@ import torch
 import torch.nn as nn
 from torch.distributions import Normal
 
+SCRIPT = os.path.basename(__file__)
+
 
 @dataclass
 class Args:
-    exp_name: str = os.path.basename(__file__)[: -len(".py")]  # the name of this experiment, part of the run directory's name
+    exp_name: str = SCRIPT[: -len(".py")]  # the experiment's name, part of the run directory's
     seed: int = 1  # seed of torch and of the environments
-    device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto is the CPU, where these small MLPs run fastest)
-    compile: bool = False  # apply torch.compile to the policy step and the minibatch update (it compiles during the first iterations)
+    device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto: the CPU, where small MLPs run fastest)
+    compile: bool = (
+        False  # torch.compile the policy step and the minibatch update (it compiles in the first iterations)
+    )
     torch_threads: int = 1  # torch CPU threads
-    run_dir: str | None = None  # where TensorBoard logs and the checkpoint go (None: runs/{env_id}__{exp_name}__{seed}__{time})
-    capture_video: bool = False  # film episodes 0, 1, 8, 27, ... of the first env in training (every 1000th after 1000), and every evaluation episode
+    run_dir: str | None = (
+        None  # where TensorBoard logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
+    )
+    # film episodes 0, 1, 8, 27, ... of the first env in training (every 1000th after 1000), and each evaluation episode
+    capture_video: bool = False
     # Algorithm: the paper's MuJoCo settings (Table 3) where it gives one, else the implementation detail cited
     env_id: str = "Hopper-v5"  # the id of a gymnasium environment with a Box action space
     total_timesteps: int = 1_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 1M)
     learning_rate: float = 3e-4  # Adam step size (paper: 3e-4)
     num_envs: int = 1  # number of parallel actors N (paper: 1)
     num_steps: int = 2048  # steps per actor in each rollout, the horizon T (paper: 2048)
-    anneal_lr: bool = True  # anneal the learning rate linearly to 0 (core detail 4; Table 3 gives a fixed 3e-4, baselines' ppo1 anneals it)
+    anneal_lr: bool = True  # anneal the learning rate linearly to 0 (core detail 4; Table 3 gives a fixed 3e-4)
     gamma: float = 0.99  # discount factor gamma (paper: 0.99)
     gae_lambda: float = 0.95  # GAE lambda (paper: 0.95)
     minibatch_size: int = 64  # minibatch size (paper: 64); must divide --num-envs x --num-steps
     update_epochs: int = 10  # epochs K over each rollout (paper: 10)
     norm_adv: bool = True  # normalize advantages per minibatch (core detail 7)
-    clip_coef: float = 0.2  # clip range epsilon of L^CLIP (paper: 0.2), also the value loss's (as in baselines' ppo2)
-    clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef (core detail 9; not in eq. 9)
+    clip_coef: float = 0.2  # clip range epsilon of L^CLIP (paper: 0.2), also the value loss's
+    clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef (core detail 9; not in eq. (9))
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
-    vf_coef: float = 0.25  # c1 of eq. 9, on the squared error (V - V_targ)^2 (paper: irrelevant with separate networks, §6.1; here it acts only via the grad clip; CleanRL's 0.5 on half of it)
+    # c1 of eq. (9), on the squared error (V - V_targ)^2; with separate networks it acts only through the gradient clip
+    vf_coef: float = 0.25
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
     norm_obs: bool = True  # normalize observations with running statistics (continuous details 6-7)
     norm_reward: bool = True  # scale rewards by the running std of the discounted return (continuous details 8-9)
-    save_every: int = 10  # write the checkpoint every this many iterations (it is also written at the end and on Ctrl-C)
-    resume: str | None = None  # continue the run saved in this checkpoint; its hyperparameters come from the checkpoint
+    save_every: int = 10  # write the checkpoint every this many iterations (also at the end and on Ctrl-C)
+    resume: str | None = None  # continue the run saved in this checkpoint, with the hyperparameters it holds
     eval_checkpoint: str | None = None  # evaluate the deterministic policy of this checkpoint instead of training
     eval_episodes: int = 10  # number of episodes for --eval-checkpoint
 
 
 # THE MATH
 def compute_gae(rewards, values, next_values, terminations, truncations, gamma, gae_lambda):
-    """Generalized advantage estimation, paper eq. (11)-(12), over [T, N] tensors.
+    """Generalized advantage estimation, eq. (11)-(12), over [T, N] tensors.
 
     next_values[t] is V of the observation that step t reached: after a time-limit truncation, the
-    final observation's, bootstrapped (Pardo et al. 2018; the paper's code and CleanRL treat it as a
-    termination); no advantage flows across an episode's end. The returns A + V are the value
-    function's TD(lambda) targets (core detail 5).
+    final observation's, which is bootstrapped (Pardo et al. 2018); no advantage flows across an
+    episode's end. The returns A + V are the value function's TD(lambda) targets (core detail 5).
 
     >>> one = torch.ones(3, 1)
-    >>> adv, ret = compute_gae(one, 0 * one, 0 * one, torch.tensor([[0.], [0.], [1.]]), 0 * one, 0.5, 1.0)
+    >>> adv, ret = compute_gae(one, 0 * one, 0 * one, torch.tensor([[0.0], [0.0], [1.0]]), 0 * one, 0.5, 1.0)
     >>> adv.flatten().tolist()  # discounted reward-to-go with gamma = 0.5: 1 + .5 + .25, 1 + .5, 1
     [1.75, 1.5, 1.0]
     """
-    terminations, dones = terminations.float(), torch.maximum(terminations.float(), truncations.float())
+    dones = torch.maximum(terminations.float(), truncations.float())
+    terminations = terminations.float()
     # Eq. (12), for all t at once: delta_t = r_t + gamma V(s_{t+1}) - V(s_t), with V = 0 after a termination.
     deltas = rewards + gamma * (1.0 - terminations) * next_values - values
     # Eq. (11), backwards in time: A_t = delta_t + gamma lambda A_{t+1}, restarted where an episode ended.
-    advantages, lastgaelam = torch.zeros_like(rewards), torch.zeros_like(rewards[0])
+    advantages = torch.zeros_like(rewards)
+    lastgaelam = torch.zeros_like(rewards[0])
     for t in reversed(range(rewards.shape[0])):
         lastgaelam = deltas[t] + gamma * gae_lambda * (1.0 - dones[t]) * lastgaelam
         advantages[t] = lastgaelam
@@ -86,9 +99,9 @@ def compute_gae(rewards, values, next_values, terminations, truncations, gamma, 
 
 
 def clipped_surrogate_loss(ratio, advantages, clip_coef):
-    """Minus L^CLIP, paper eq. (7): -E[min(r A, clip(r, 1 - eps, 1 + eps) A)] (core detail 8).
+    """Minus L^CLIP, eq. (7): -E[min(r A, clip(r, 1 - eps, 1 + eps) A)] (core detail 8).
 
-    >>> clipped_surrogate_loss(torch.tensor([1.5, 0.5]), torch.tensor([1.0, 1.0]), 0.2)  # -(min(1.5, 1.2) + min(.5, .8)) / 2
+    >>> clipped_surrogate_loss(torch.tensor([1.5, 0.5]), torch.tensor([1.0, 1.0]), 0.2)  # -(1.2 + 0.5) / 2
     tensor(-0.8500)
     """
     surr1 = ratio * advantages
@@ -97,10 +110,10 @@ def clipped_surrogate_loss(ratio, advantages, clip_coef):
 
 
 def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
-    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9).
+    """L^VF of eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9).
 
-    The clipped form is baselines' ppo2, not the paper's: the larger of the errors of the new value and
-    of the old value moved at most clip_coef towards it. Engstrom et al. (2020) found no gain in it."""
+    The clipped form is not the paper's: the larger of the errors of the new value and of the old
+    value moved at most clip_coef towards it."""
     v_loss_unclipped = (newvalue - returns) ** 2
     if not clip_vloss:
         return v_loss_unclipped.mean()
@@ -108,9 +121,40 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
     return torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
 
 
+def update_minibatch(agent, optimizer, mb, clip_coef, args):
+    """One step of gradient descent on minus L^{CLIP+VF+S}, eq. (9), for the minibatch `mb`; its statistics."""
+    _, newlogprob, entropy, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
+    logratio = newlogprob - mb["logprobs"]
+    ratio = logratio.exp()  # r_t(theta), eq. (6)
+    advantages = mb["advantages"]
+    if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    pg_loss = clipped_surrogate_loss(ratio, advantages, clip_coef)
+    v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
+    entropy = entropy.mean()
+    loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
+    optimizer.zero_grad()
+    loss.backward()
+    if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
+        nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+    optimizer.step()
+    # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
+    stats = {
+        "policy_loss": pg_loss,
+        "value_loss": v_loss,
+        "entropy": entropy,
+        "old_approx_kl": (-logratio).mean(),
+        "approx_kl": ((ratio - 1) - logratio).mean(),
+        "clipfrac": ((ratio - 1.0).abs() > clip_coef).float().mean(),
+        "loss": loss,
+    }
+    return {name: stat.detach() for name, stat in stats.items()}
+
+
 # ENVIRONMENT
 def make_env(env_id, capture_video=False, video_dir=None, name_prefix="rl-video", episode_trigger=None):
     import gymnasium as gym
+
     if not capture_video:  # no wrappers: train() clips, normalizes and counts episodes itself
         return gym.make(env_id)
     os.environ.setdefault("MUJOCO_GL", "egl")  # render headless, without a display
@@ -121,8 +165,20 @@ def make_env(env_id, capture_video=False, video_dir=None, name_prefix="rl-video"
     return gym.wrappers.RecordVideo(env, video_dir, episode_trigger, name_prefix=name_prefix)
 
 
+def make_envs(args, video_dir, video_prefix):
+    """Core detail 1: N envs stepped together, the first one filmed with --capture-video. SAME_STEP autoreset: the step
+    that ends an episode returns the next one's first observation, and the final one in infos["final_obs"]."""
+    import gymnasium as gym
+
+    env_fns = [
+        lambda i=i: make_env(args.env_id, args.capture_video and i == 0, video_dir, video_prefix)
+        for i in range(args.num_envs)
+    ]
+    return gym.vector.SyncVectorEnv(env_fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+
+
 # AGENT
-def layer_init(layer, std=math.sqrt(2), bias_const=0.0):
+def layer_init(layer, std=2**0.5, bias_const=0.0):
     # Core detail 2: orthogonal weights with gain sqrt(2) for hidden layers, constant 0 biases.
     torch.nn.init.orthogonal_(layer.weight, std)
     torch.nn.init.constant_(layer.bias, bias_const)
@@ -135,19 +191,29 @@ class RunningMeanStd(nn.Module):
 
     def __init__(self, shape=(), epsilon=1e-4):
         super().__init__()
-        self.mean, self.var, self.count = np.zeros(shape), np.ones(shape), epsilon
+        self.mean = np.zeros(shape)
+        self.var = np.ones(shape)
+        self.count = epsilon
 
     def update(self, x):
-        batch_mean, batch_var, batch_count = x.mean(0), x.var(0), x.shape[0]
-        delta, total = batch_mean - self.mean, self.count + batch_count
-        self.var = (self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total
-        self.mean, self.count = self.mean + delta * batch_count / total, total
+        batch_mean = x.mean(0)
+        batch_var = x.var(0)
+        batch_count = x.shape[0]
+        delta = batch_mean - self.mean
+        total = self.count + batch_count
+        self.var = (
+            self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total
+        ) / total
+        self.mean = self.mean + delta * batch_count / total
+        self.count = total
 
     def get_extra_state(self):  # nn.Module saves and loads this with the agent's state_dict
         return {"mean": torch.tensor(self.mean), "var": torch.tensor(self.var), "count": self.count}
 
     def set_extra_state(self, state):
-        self.mean, self.var, self.count = state["mean"].numpy(), state["var"].numpy(), float(state["count"])
+        self.mean = state["mean"].numpy()
+        self.var = state["var"].numpy()
+        self.count = float(state["count"])
 
 
 class Agent(nn.Module):
@@ -155,13 +221,26 @@ class Agent(nn.Module):
         super().__init__()
         # Core detail 13 / continuous detail 4: separate 64x64 tanh networks (paper §6.1). Output gains
         # (core detail 2): 1 for the value, 0.01 for the policy mean, so that pi starts near N(0, 1).
-        self.critic = nn.Sequential(layer_init(nn.Linear(obs_dim, 64)), nn.Tanh(), layer_init(nn.Linear(64, 64)), nn.Tanh(),
-                                    layer_init(nn.Linear(64, 1), std=1.0))  # fmt: skip
-        self.actor_mean = nn.Sequential(layer_init(nn.Linear(obs_dim, 64)), nn.Tanh(), layer_init(nn.Linear(64, 64)), nn.Tanh(),
-                                        layer_init(nn.Linear(64, act_dim), std=0.01))  # fmt: skip
+        self.critic = nn.Sequential(
+            layer_init(nn.Linear(obs_dim, 64)),
+            nn.Tanh(),
+            layer_init(nn.Linear(64, 64)),
+            nn.Tanh(),
+            layer_init(nn.Linear(64, 1), std=1.0),
+        )
+        self.actor_mean = nn.Sequential(
+            layer_init(nn.Linear(obs_dim, 64)),
+            nn.Tanh(),
+            layer_init(nn.Linear(64, 64)),
+            nn.Tanh(),
+            layer_init(nn.Linear(64, act_dim), std=0.01),
+        )
         # Continuous detail 2: a state-independent log std, a learned vector starting at 0 (std 1).
         self.actor_logstd = nn.Parameter(torch.zeros(act_dim))
-        self.norm_obs, self.obs_rms, self.return_rms = norm_obs, RunningMeanStd((obs_dim,)), RunningMeanStd(())  # continuous details 6, 8
+        self.norm_obs = norm_obs
+        self.obs_rms = RunningMeanStd((obs_dim,))  # continuous detail 6
+        self.return_rms = RunningMeanStd(())  # continuous detail 8
+        self.discounted_return = 0.0  # of each env, in training
 
     def normalize_obs(self, raw_obs, update=False):
         """Raw numpy observations -> float32 network inputs, first adding them to the statistics if `update`."""
@@ -170,7 +249,16 @@ class Agent(nn.Module):
         if update:
             self.obs_rms.update(raw_obs)  # continuous detail 6
         # Continuous detail 7: clip the normalized observation to [-10, 10].
-        return np.clip((raw_obs - self.obs_rms.mean) / np.sqrt(self.obs_rms.var + 1e-8), -10.0, 10.0).astype(np.float32)
+        normalized = (raw_obs - self.obs_rms.mean) / np.sqrt(self.obs_rms.var + 1e-8)
+        return np.clip(normalized, -10.0, 10.0).astype(np.float32)
+
+    def normalize_reward(self, reward, done, gamma):
+        """Continuous details 8-9: divide the rewards by the running std of the discounted return (no mean is
+        subtracted), and clip them to [-10, 10]. `done` marks the envs whose episode ended with this reward."""
+        self.discounted_return = self.discounted_return * gamma + reward
+        self.return_rms.update(self.discounted_return)
+        self.discounted_return[done] = 0.0
+        return np.clip(reward / np.sqrt(self.return_rms.var + 1e-8), -10.0, 10.0)
 
     def get_value(self, obs):
         return self.critic(obs).squeeze(-1)
@@ -187,159 +275,147 @@ class Agent(nn.Module):
 
 # TRAINING
 def train(args):
-    import gymnasium as gym
+    """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates.
+
+    Returns (agent, run_dir). Raises Stopped after Ctrl-C or SIGTERM, once the checkpoint is saved, and
+    Diverged when the loss or the weights stop being finite."""
     from torch.utils.tensorboard import SummaryWriter
+
     # A new run, or the run of --resume, continued with the hyperparameters of its checkpoint.
     checkpoint = load_checkpoint(args.resume) if args.resume else None
-    args = resumed_args(checkpoint, args) if checkpoint else args
-    run_dir = args.run_dir or f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    checkpoint_path, device = os.path.join(run_dir, "checkpoint.pt"), torch.device("cpu" if args.device == "auto" else args.device)
-    T, N = args.num_steps, args.num_envs
-    batch_size, num_iterations = N * T, args.total_timesteps // (N * T)
-    torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
-    torch.set_num_threads(args.torch_threads)
-
-    video_prefix = f"from-step-{checkpoint['global_step'] if checkpoint else 0}"  # a resumed run's videos overwrite none
-    # Core detail 1: N envs stepped together. SAME_STEP autoreset: the step that ends an episode returns the
-    # next one's first observation and the final one in infos["final_obs"] (the default stores a fake step).
-    envs = gym.vector.SyncVectorEnv([lambda i=i: make_env(args.env_id, args.capture_video and i == 0, f"{run_dir}/videos", video_prefix) for i in range(N)],
-                                    autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)  # fmt: skip
-    obs_dim, act_dim = envs.single_observation_space.shape[0], envs.single_action_space.shape[0]
-    agent = Agent(obs_dim, act_dim, norm_obs=args.norm_obs).to(device)
-    # Core detail 3: Adam with eps 1e-5. The lr is a tensor: annealing it changes a number, not what --compile built.
-    optimizer = torch.optim.Adam(agent.parameters(), lr=torch.tensor(args.learning_rate, device=device), eps=1e-5, fused=True)
-    global_step, start_iteration = 0, 1
     if checkpoint:
-        agent.load_state_dict(checkpoint["agent"])
-        optimizer.load_state_dict(checkpoint["optimizer"])
-        torch.set_rng_state(checkpoint["torch_rng_state"])
-        global_step, start_iteration = checkpoint["global_step"], checkpoint["iteration"] + 1
-        print(f"resuming {run_dir} at step {global_step:,} (iteration {checkpoint['iteration']})")
+        args = resumed_args(checkpoint, args)
+    run_dir = args.run_dir or f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
+    device = pick_device(args.device)
+    T, N = args.num_steps, args.num_envs
+    batch_size = N * T
+    num_iterations = args.total_timesteps // batch_size
+    torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
+    with contextlib.ExitStack() as on_exit:  # whatever train() changes or opens is undone or closed on every exit
+        stop = on_exit.enter_context(process_settings(args))
+        video_prefix = f"from-step-{checkpoint['global_step'] if checkpoint else 0}"  # a resumed run's overwrite none
+        envs = make_envs(args, f"{run_dir}/videos", video_prefix)  # core detail 1
+        on_exit.callback(envs.close)
+        obs_dim = envs.single_observation_space.shape[0]
+        act_dim = envs.single_action_space.shape[0]
+        agent = Agent(obs_dim, act_dim, norm_obs=args.norm_obs).to(device)
+        # Core detail 3: Adam with eps 1e-5. The lr is a tensor: annealing changes a number, not what --compile built.
+        lr = torch.tensor(args.learning_rate, device=device)
+        optimizer = torch.optim.Adam(agent.parameters(), lr=lr, eps=1e-5, fused=True)
+        global_step, start_iteration = restore(checkpoint, agent, optimizer, run_dir)
+        policy = torch.compile(agent.get_action_and_value) if args.compile else agent.get_action_and_value
+        update = torch.compile(update_minibatch) if args.compile else update_minibatch
 
-    def update(mb_obs, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, clip_coef):
-        """One minibatch step of gradient descent on minus L^{CLIP+VF+S}, paper eq. (9)."""
-        _, newlogprob, entropy, newvalue = agent.get_action_and_value(mb_obs, mb_actions)
-        logratio = newlogprob - mb_logprobs
-        ratio = logratio.exp()  # r_t(theta), paper eq. (6)
-        if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch
-            mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
-        pg_loss = clipped_surrogate_loss(ratio, mb_advantages, clip_coef)
-        v_loss = value_loss(newvalue, mb_values, mb_returns, args.clip_coef, args.clip_vloss)  # the fixed clip range, never annealed
-        entropy = entropy.mean()
-        loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
-        optimizer.zero_grad()
-        loss.backward()
-        if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
-            nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
-        optimizer.step()
-        # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[old, new] (joschu.net/blog/kl-approx.html).
-        stats = dict(policy_loss=pg_loss, value_loss=v_loss, entropy=entropy, old_approx_kl=(-logratio).mean(),
-                     approx_kl=((ratio - 1) - logratio).mean(), clipfrac=((ratio - 1.0).abs() > clip_coef).float().mean(), loss=loss)
-        return {name: stat.detach() for name, stat in stats.items()}
+        # Rollout storage: T steps of N envs. Observations are stored normalized: they are the inputs.
+        obs = torch.zeros((T, N, obs_dim), device=device)
+        actions = torch.zeros((T, N, act_dim), device=device)
+        logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, N), device=device)
+        # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
+        next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + np.arange(N)).tolist())
+        next_obs = torch.as_tensor(agent.normalize_obs(next_obs, update=True), device=device)
+        episode_return = np.zeros(N)
+        episode_length = np.zeros(N, dtype=np.int64)
+        # On --resume, purge_step drops what the run logged after its checkpoint: its curves go on without a fold.
+        writer = SummaryWriter(run_dir, purge_step=global_step + 1 if checkpoint else None)
+        on_exit.callback(writer.close)
+        writer.add_text(
+            "hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items())
+        )
+        recent_returns = deque(maxlen=100)
+        start_time = time.time()
+        start_step = global_step
+        last_print = 0.0
 
-    policy = agent.get_action_and_value
-    if args.compile:
-        torch._inductor.config.fallback_random = True  # sample with torch's own generator, as eager code does
-        policy, update = torch.compile(policy), torch.compile(update)
+        # ALGORITHM 1: for iteration = 1, 2, ...
+        for iteration in range(start_iteration, num_iterations + 1):
+            # Core detail 4: anneal the learning rate linearly to 0; epsilon stays fixed, as in §6.1.
+            alpha = 1.0 - (iteration - 1.0) / num_iterations
+            optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate if args.anneal_lr else args.learning_rate)
 
-    # Rollout storage: T steps of N envs. Observations are stored normalized: they are the inputs.
-    obs, actions = torch.zeros((T, N, obs_dim), device=device), torch.zeros((T, N, act_dim), device=device)
-    logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, N), device=device)
+            # ROLLOUT: run the policy pi_theta_old in N environments for T timesteps.
+            with torch.no_grad():
+                for step in range(T):
+                    global_step += N
+                    obs[step] = next_obs
+                    action, logprobs[step], _, values[step] = policy(next_obs)
+                    actions[step] = action
+                    # Continuous detail 5: clip the action for the env only; the ratio uses the sample's log-prob.
+                    action = np.clip(action.cpu().numpy(), envs.single_action_space.low, envs.single_action_space.high)
+                    next_obs_raw, reward, term, trunc, infos = envs.step(action)
+                    next_obs = torch.as_tensor(agent.normalize_obs(next_obs_raw, update=True), device=device)
+                    terminations[step] = torch.as_tensor(term)
+                    truncations[step] = torch.as_tensor(trunc)
+                    rewards[step] = torch.as_tensor(reward)
+                    if args.norm_reward:  # continuous details 8-9
+                        rewards[step] = torch.as_tensor(agent.normalize_reward(reward, term | trunc, args.gamma))
+                    episode_return += reward
+                    episode_length += 1
+                    finished = term | trunc  # an episode ended: log its return, the raw rewards' sum
+                    for i in np.flatnonzero(trunc):  # the true final observation of an episode cut by the time limit
+                        final_obs = agent.normalize_obs(infos["final_obs"][i])
+                        final_values[step, i] = agent.get_value(torch.as_tensor(final_obs, device=device))
+                    for i in np.flatnonzero(finished):
+                        recent_returns.append(episode_return[i])
+                        writer.add_scalar("charts/episodic_return", episode_return[i], global_step)
+                        writer.add_scalar("charts/episodic_length", episode_length[i], global_step)
+                        episode_return[i] = 0.0
+                        episode_length[i] = 0
 
-    # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env; a resume starts new episodes.
-    next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + np.arange(N)).tolist())
-    next_obs = torch.as_tensor(agent.normalize_obs(next_obs, update=True), device=device)
-    discounted_return, episode_return, episode_length = np.zeros(N), np.zeros(N), np.zeros(N, dtype=np.int64)
-    # On --resume, purge_step drops what the run logged after its checkpoint: its curves go on without a fold.
-    writer = SummaryWriter(run_dir, purge_step=global_step + 1 if checkpoint else None)
-    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items()))
-    recent_returns, stop = deque(maxlen=100), []
-    start_time, start_step, last_print, diverged = time.time(), global_step, 0.0, False
-    # Ctrl-C and SIGTERM (say, a job scheduler's stop) only set a flag, which the loop checks.
-    previous_handlers = {sig: signal.signal(sig, lambda signum, frame: stop.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)}
+                # ADVANTAGES: next_values[t] = V(s_{t+1}); the last is eq. (10)'s bootstrap V(s_T), and where an
+                # episode was truncated, V of its final observation.
+                next_values = torch.cat([values[1:], agent.get_value(next_obs)[None]])
+                next_values = torch.where(truncations.bool(), final_values, next_values)
+                advantages, returns = compute_gae(
+                    rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda
+                )
 
-    # ALGORITHM 1: for iteration = 1, 2, ...
-    for iteration in range(start_iteration, num_iterations + 1):
-        # Core detail 4: anneal the learning rate linearly to 0. Table 3 gives a fixed 3e-4, but the code behind the
-        # paper's MuJoCo results (baselines ppo1) anneals it, and the clip range too: we keep epsilon fixed, as §6.1 does.
-        alpha = 1.0 - (iteration - 1.0) / num_iterations
-        optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate if args.anneal_lr else args.learning_rate)
-        clip_coef = args.clip_coef
+            # UPDATE: K epochs of minibatch gradient descent on the flattened batch.
+            batch = {
+                "obs": obs.reshape(-1, obs_dim),
+                "actions": actions.reshape(-1, act_dim),
+                "logprobs": logprobs.reshape(-1),
+                "advantages": advantages.reshape(-1),
+                "returns": returns.reshape(-1),
+                "values": values.reshape(-1),
+            }
+            update_stats = []
+            for _epoch in range(args.update_epochs):
+                b_inds = torch.randperm(batch_size, device=device)  # core detail 6: a new shuffle each epoch
+                for start in range(0, batch_size, args.minibatch_size):
+                    mb_inds = b_inds[start : start + args.minibatch_size]
+                    mb = {key: value[mb_inds] for key, value in batch.items()}
+                    update_stats.append(update(agent, optimizer, mb, args.clip_coef, args))
 
-        # ROLLOUT: run the policy pi_theta_old in N environments for T timesteps.
-        with torch.no_grad():
-            for step in range(T):
-                global_step += N
-                obs[step] = next_obs
-                action, logprobs[step], _, values[step] = policy(next_obs)
-                actions[step] = action
-                # Continuous detail 5: clip the action to the valid range for the env only; the ratio uses the sample's log-prob.
-                action = np.clip(action.cpu().numpy(), envs.single_action_space.low, envs.single_action_space.high)
-                next_obs_raw, reward, term, trunc, infos = envs.step(action)
-                next_obs = torch.as_tensor(agent.normalize_obs(next_obs_raw, update=True), device=device)
-                terminations[step], truncations[step], rewards[step] = torch.as_tensor(term), torch.as_tensor(trunc), torch.as_tensor(reward)
-                if args.norm_reward:
-                    # Continuous details 8-9: divide by the running std of the discounted return (no mean subtracted), clip to [-10, 10].
-                    discounted_return = discounted_return * args.gamma + reward
-                    agent.return_rms.update(discounted_return)
-                    discounted_return[term | trunc] = 0.0
-                    rewards[step] = torch.as_tensor(np.clip(reward / np.sqrt(agent.return_rms.var + 1e-8), -10.0, 10.0))
-                episode_return, episode_length = episode_return + reward, episode_length + 1
-                finished = term | trunc  # an episode ended: log its return, the raw rewards' sum
-                for i in np.flatnonzero(trunc):  # bootstrap from the true final observation of an episode cut by the time limit
-                    final_values[step, i] = agent.get_value(torch.as_tensor(agent.normalize_obs(infos["final_obs"][i]), device=device))
-                for i in np.flatnonzero(finished):
-                    recent_returns.append(episode_return[i])
-                    writer.add_scalar("charts/episodic_return", episode_return[i], global_step)
-                    writer.add_scalar("charts/episodic_length", episode_length[i], global_step)
-                    episode_return[i], episode_length[i] = 0.0, 0
+            # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
+            losses = {
+                name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]
+            }
+            losses["explained_variance"] = (
+                1 - (batch["returns"] - batch["values"]).var() / batch["returns"].var()
+            ).item()
+            sps = int((global_step - start_step) / (time.time() - start_time))
+            writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"].item(), global_step)
+            writer.add_scalar("charts/SPS", sps, global_step)
+            for name, value in losses.items():
+                writer.add_scalar(f"losses/{name}", value, global_step)
+            if time.time() - last_print > 10 or iteration == num_iterations:
+                last_print = time.time()
+                print(progress(global_step, num_iterations * batch_size, sps, recent_returns), flush=True)
 
-            # ADVANTAGES: next_values[t] = V(s_{t+1}), the last one eq. (10)'s bootstrap V(s_T), or V(final observation) where an episode was truncated.
-            next_values = torch.cat([values[1:], agent.get_value(next_obs)[None]])
-            next_values = torch.where(truncations.bool(), final_values, next_values)
-            advantages, returns = compute_gae(rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda)
-
-        # UPDATE: K epochs of minibatch gradient descent on the flattened batch.
-        b_obs, b_actions, b_logprobs = obs.reshape(-1, obs_dim), actions.reshape(-1, act_dim), logprobs.reshape(-1)
-        b_advantages, b_returns, b_values, update_stats = advantages.reshape(-1), returns.reshape(-1), values.reshape(-1), []
-        for epoch in range(args.update_epochs):
-            b_inds = torch.randperm(batch_size, device=device)  # core detail 6: a new shuffle each epoch
-            for start in range(0, batch_size, args.minibatch_size):
-                mb_inds = b_inds[start : start + args.minibatch_size]
-                update_stats.append(update(b_obs[mb_inds], b_actions[mb_inds], b_logprobs[mb_inds], b_advantages[mb_inds],
-                                           b_returns[mb_inds], b_values[mb_inds], clip_coef))  # fmt: skip
-
-        # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
-        losses = {name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]}
-        losses["explained_variance"] = (1 - (b_returns - b_values).var() / b_returns.var()).item()
-        sps = int((global_step - start_step) / (time.time() - start_time))
-        writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"].item(), global_step)
-        writer.add_scalar("charts/SPS", sps, global_step)
-        for name, value in losses.items():
-            writer.add_scalar(f"losses/{name}", value, global_step)
-        if time.time() - last_print > 10 or iteration == num_iterations:
-            last_print, recent = time.time(), f"{np.mean(recent_returns):.1f}" if recent_returns else "n/a"
-            print(f"step {global_step:,}/{num_iterations * batch_size:,} | SPS {sps} | return (last {len(recent_returns)}) {recent}"
-                  f" | ETA {(num_iterations * batch_size - global_step) / max(sps, 1) / 60:.1f} min", flush=True)  # fmt: skip
-
-        # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
-        diverged = not (math.isfinite(losses["policy_loss"] + losses["value_loss"]) and all(p.isfinite().all() for p in agent.parameters()))
-        if not diverged and (stop or iteration % args.save_every == 0 or iteration == num_iterations):
-            writer.flush()  # the curve on disk reaches at least the checkpoint's step
-            save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration)
-        if diverged or stop:
-            break
-
-    for sig, handler in previous_handlers.items():
-        signal.signal(sig, handler)
-    envs.close()
-    writer.close()
-    if diverged:
-        sys.exit(f"{os.path.basename(__file__)}: error: the loss or the weights are not finite after iteration {iteration}; "
-                 f"try a smaller --learning-rate (the last finite checkpoint, if any, is {checkpoint_path})")  # fmt: skip
-    if stop:
-        print(f"stopped: saved step {global_step:,} to {checkpoint_path}; continue with --resume {checkpoint_path}")
-        sys.exit(130)
+            # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
+            if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
+                raise Diverged(
+                    f"the loss or the weights are not finite after iteration {iteration}; try a smaller"
+                    f" --learning-rate (the last finite checkpoint, if any, is {checkpoint_path})"
+                )
+            if stop or iteration % args.save_every == 0 or iteration == num_iterations:
+                writer.flush()  # the curve on disk reaches at least the checkpoint's step
+                save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration)
+            if stop:
+                raise Stopped(
+                    f"saved step {global_step:,} to {checkpoint_path}; continue with --resume {checkpoint_path}"
+                )
     print(f"saved {checkpoint_path}")
     return agent, run_dir
 
@@ -348,39 +424,106 @@ def train(args):
 def evaluate(args):
     """Run the deterministic policy (the Gaussian's mean) of --eval-checkpoint with its saved statistics."""
     checkpoint = load_checkpoint(args.eval_checkpoint)
-    train_args, device = resumed_args(checkpoint, args), torch.device("cpu" if args.device == "auto" else args.device)
-    env = make_env(train_args.env_id, args.capture_video, f"{train_args.run_dir}/videos-eval", "eval", lambda episode: True)
+    train_args = resumed_args(checkpoint, args)
+    device = pick_device(args.device)
+    env = make_env(train_args.env_id, args.capture_video, f"{train_args.run_dir}/videos-eval", "eval", lambda _: True)
     agent = Agent(env.observation_space.shape[0], env.action_space.shape[0], norm_obs=train_args.norm_obs).to(device)
     agent.load_state_dict(checkpoint["agent"])
     returns = []
     for episode in range(args.eval_episodes):
-        (raw_obs, _), done, episode_return = env.reset(seed=args.seed + episode), False, 0.0
+        raw_obs, _ = env.reset(seed=args.seed + episode)
+        done = False
+        episode_return = 0.0
         while not done:  # the statistics stay frozen: evaluation does not change the normalization
             with torch.no_grad():
                 action = agent.actor_mean(torch.as_tensor(agent.normalize_obs(raw_obs), device=device)).cpu().numpy()
             raw_obs, reward, term, trunc, _ = env.step(np.clip(action, env.action_space.low, env.action_space.high))
-            episode_return, done = episode_return + float(reward), term or trunc
+            episode_return += float(reward)
+            done = term or trunc
         returns.append(episode_return)
     env.close()
-    print(f"eval {train_args.env_id} step {checkpoint['global_step']:,}: return {np.mean(returns):.1f} ± {np.std(returns):.1f} over {len(returns)} episodes")
+    summary = f"return {np.mean(returns):.1f} ± {np.std(returns):.1f} over {len(returns)} episodes"
+    print(f"eval {train_args.env_id} step {checkpoint['global_step']:,}: {summary}")
     return returns
 
 
-# MACHINERY: checkpoints and argument checks. A resumed run takes how to run it (RUNTIME_FIELDS) from the command line.
-RUNTIME_FIELDS = ("device", "compile", "torch_threads", "capture_video", "save_every", "resume", "eval_checkpoint", "eval_episodes")
+# MACHINERY: the process's settings, progress, checkpoints and argument checks.
+class Stopped(Exception):
+    """Ctrl-C or SIGTERM stopped the run at the end of an iteration, after its checkpoint was saved."""
+
+
+class Diverged(Exception):
+    """The loss or the weights stopped being finite; the last finite checkpoint stays on disk."""
+
+
+@contextlib.contextmanager
+def process_settings(args):
+    """Until the run ends, by a return or an error: Ctrl-C and SIGTERM only set a flag, which the loop checks; torch
+    uses --torch-threads threads; and with --compile, compiled code samples with torch's generator, as eager code."""
+    stop = []
+    previous_threads = torch.get_num_threads()
+    previous_handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        torch.set_num_threads(args.torch_threads)
+        for sig in previous_handlers:
+            signal.signal(sig, lambda signum, frame: stop.append(signum))
+        with torch._inductor.config.patch(fallback_random=True) if args.compile else contextlib.nullcontext():
+            yield stop
+    finally:
+        torch.set_num_threads(previous_threads)
+        for sig, handler in previous_handlers.items():
+            signal.signal(sig, handler)
+
+
+def pick_device(name):
+    return torch.device("cpu" if name == "auto" else name)
+
+
+def progress(global_step, total_steps, sps, recent_returns):
+    mean = f"{np.mean(recent_returns):.1f}" if recent_returns else "n/a"
+    eta = (total_steps - global_step) / max(sps, 1) / 60
+    recent = f"return (last {len(recent_returns)}) {mean}"
+    return f"step {global_step:,}/{total_steps:,} | SPS {sps} | {recent} | ETA {eta:.1f} min"
+
+
+# A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
+RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
 
 
 def resumed_args(checkpoint, args):
     run_dir = os.path.dirname(os.path.abspath(args.resume or args.eval_checkpoint))
-    return Args(**{**checkpoint["args"], **{k: getattr(args, k) for k in RUNTIME_FIELDS}, "run_dir": run_dir})
+    runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
+    return Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
+
+
+def restore(checkpoint, agent, optimizer, run_dir):
+    """The step and the iteration a run starts from: those after its checkpoint's, whose state it loads, if any."""
+    if checkpoint is None:
+        return 0, 1
+    agent.load_state_dict(checkpoint["agent"])
+    optimizer.load_state_dict(checkpoint["optimizer"])
+    torch.set_rng_state(checkpoint["torch_rng_state"])
+    print(f"resuming {run_dir} at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})")
+    return checkpoint["global_step"], checkpoint["iteration"] + 1
 
 
 def save_checkpoint(path, args, agent, optimizer, global_step, iteration):
     # Tensors, numbers and strings, loadable with torch.load(weights_only=True); written, then renamed, atomically.
-    torch.save({"format": "ppo-checkpoint-v1", "script": os.path.basename(__file__), "args": asdict(args), "agent": agent.state_dict(),
-                "optimizer": optimizer.state_dict(), "global_step": global_step, "iteration": iteration,
-                "torch_rng_state": torch.get_rng_state()}, f"{path}.tmp")  # fmt: skip
+    checkpoint = {
+        "format": FORMAT[0],
+        "script": FORMAT[1],
+        "args": asdict(args),
+        "agent": agent.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "global_step": global_step,
+        "iteration": iteration,
+        "torch_rng_state": torch.get_rng_state(),
+    }
+    torch.save(checkpoint, f"{path}.tmp")
     os.replace(f"{path}.tmp", path)
+
+
+FORMAT = ("ppo-checkpoint-v1", SCRIPT)
 
 
 def load_checkpoint(path):
@@ -390,63 +533,92 @@ def load_checkpoint(path):
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
-        raise ValueError(f"cannot read checkpoint {path!r}: it is corrupt or not a checkpoint ({type(e).__name__})") from None
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "ppo-checkpoint-v1" or checkpoint.get("script") != os.path.basename(__file__):
-        raise ValueError(f"{path!r} is not a checkpoint written by {os.path.basename(__file__)}")
+        raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({type(e).__name__})") from None
+    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != FORMAT:
+        raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
     return checkpoint
+
+
+# Flags that must be positive, and flags that must lie in [low, high]. Every float must be finite too.
+POSITIVE = "total_timesteps num_envs num_steps minibatch_size update_epochs save_every eval_episodes".split()
+POSITIVE += "torch_threads learning_rate clip_coef max_grad_norm".split()
+BOUNDS = {"gamma": (0, 1), "gae_lambda": (0, 1), "vf_coef": (0, math.inf), "ent_coef": (0, math.inf)}
 
 
 def check_args(args):
     """Reject bad input before anything heavy loads, with a one-line reason (a ValueError)."""
-    flag, batch = lambda name: "--" + name.replace("_", "-"), args.num_envs * args.num_steps  # noqa: E731
     for name, value in asdict(args).items():
+        flag = "--" + name.replace("_", "-")
         if isinstance(value, float) and not math.isfinite(value):
-            raise ValueError(f"{flag(name)} must be a finite number, got {value}")
-    for name in ("total_timesteps", "num_envs", "num_steps", "minibatch_size", "update_epochs", "save_every", "eval_episodes",
-                 "torch_threads", "learning_rate", "clip_coef", "max_grad_norm"):  # fmt: skip
-        if getattr(args, name) <= 0:
-            raise ValueError(f"{flag(name)} must be positive, got {getattr(args, name)}")
-    for name, low, high in (("gamma", 0, 1), ("gae_lambda", 0, 1), ("vf_coef", 0, math.inf), ("ent_coef", 0, math.inf)):
-        if not low <= getattr(args, name) <= high:
-            raise ValueError(f"{flag(name)} must be in [{low}, {high}], got {getattr(args, name)}")
+            raise ValueError(f"{flag} must be a finite number, got {value}")
+        if name in POSITIVE and value <= 0:
+            raise ValueError(f"{flag} must be positive, got {value}")
+        if name in BOUNDS and not BOUNDS[name][0] <= value <= BOUNDS[name][1]:
+            raise ValueError(f"{flag} must be in [{BOUNDS[name][0]}, {BOUNDS[name][1]}], got {value}")
+    batch = args.num_envs * args.num_steps
     if batch % args.minibatch_size:
-        raise ValueError(f"--minibatch-size {args.minibatch_size} does not divide the batch of --num-envs x --num-steps = {batch}")
+        raise ValueError(f"--minibatch-size {args.minibatch_size} does not divide the batch of {batch} steps")
     if args.resume is None and args.eval_checkpoint is None and args.total_timesteps < batch:
         raise ValueError(f"--total-timesteps {args.total_timesteps} is less than one batch of {batch} steps")
-    if args.device != "auto" and not (args.device == "cpu" or (args.device.startswith("cuda") and torch.cuda.is_available())):
+    if args.device not in ("auto", "cpu") and not (args.device.startswith("cuda") and torch.cuda.is_available()):
         raise ValueError(f"--device {args.device} is not available here; use auto or cpu")
-    if args.run_dir is not None and os.path.isfile(args.run_dir):
-        raise ValueError(f"--run-dir {args.run_dir} is a file, not a directory")
-    if args.resume is None and args.run_dir is not None and os.path.isdir(args.run_dir) and any("tfevents" in f for f in os.listdir(args.run_dir)):
-        raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {args.run_dir}/checkpoint.pt, or pick a new directory")
     if args.resume is not None or args.eval_checkpoint is not None:
         args = resumed_args(load_checkpoint(args.resume or args.eval_checkpoint), args)
+    check_env(args.env_id)
+    if args.eval_checkpoint is None:
+        check_run_dir(args)
+
+
+def check_env(env_id):
     import gymnasium as gym
-    try:  # where ale-py is installed, register the Atari ids too, so that a game gets the hint below
-        import ale_py
-        gym.register_envs(ale_py)
-        ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # and no banner
-    except ImportError:
-        pass
+
     try:
-        env = gym.make(args.env_id)
+        env = gym.make(env_id)
     except gym.error.Error as e:
-        raise ValueError(f"unknown env id {args.env_id!r}: {e}") from None
+        hint = ". Use ppo_atari.py for Atari games" if re.search(r"ALE/|NoFrameskip|Deterministic", env_id) else ""
+        raise ValueError(f"unknown env id {env_id!r}: {e}{hint}") from None
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
-        raise ValueError(f"{args.env_id} has a {env.action_space} action space and {env.observation_space} observations; "
-                         f"{os.path.basename(__file__)} needs a Box action space and flat observations. Use ppo_atari.py for Atari games")  # fmt: skip
+        raise ValueError(
+            f"{env_id} has a {env.action_space} action space and {env.observation_space} observations; "
+            f"{SCRIPT} needs a Box action space and flat observations. Use ppo_atari.py for Atari"
+        )
+
+
+def check_run_dir(args):
+    if args.run_dir is None:
+        return
+    if os.path.isfile(args.run_dir):
+        raise ValueError(f"--run-dir {args.run_dir} is a file, not a directory")
+    if args.resume is None and os.path.isdir(args.run_dir) and any("tfevents" in f for f in os.listdir(args.run_dir)):
+        raise ValueError(
+            f"--run-dir {args.run_dir} already holds a run: continue it with --resume {args.run_dir}/checkpoint.pt,"
+            " or pick a new directory"
+        )
+    try:
+        os.makedirs(args.run_dir, exist_ok=True)
+        tempfile.TemporaryFile(dir=args.run_dir).close()
+    except OSError as e:
+        raise ValueError(f"--run-dir {args.run_dir} cannot be created or written: {e.strerror}") from None
 
 
 def main():
     import tyro
+
     args = tyro.cli(Args)
     try:
         check_args(args)
     except ValueError as e:
-        print(f"{os.path.basename(__file__)}: error: {e}", file=sys.stderr)  # one line, before anything starts
+        print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts
         sys.exit(2)
-    evaluate(args) if args.eval_checkpoint is not None else train(args)
+    try:
+        evaluate(args) if args.eval_checkpoint is not None else train(args)
+    except Stopped as e:
+        print(e)
+        sys.exit(130)
+    except Diverged as e:
+        print(f"{SCRIPT}: error: {e}", file=sys.stderr)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 """ppo_atari.py: the preprocessing of the ale-py vector env, episodic life, and the CNN."""
 
+import re
 from itertools import pairwise
 
 import numpy as np
@@ -15,21 +16,51 @@ def envs(num_envs=2, training=True, env_id="BreakoutNoFrameskip-v4", **args):
 
 
 @pytest.mark.parametrize(
-    "env_id,game",
+    "env_id,game,sticky",
     [
-        ("BreakoutNoFrameskip-v4", "breakout"),
-        ("ALE/Breakout-v5", "breakout"),
-        ("Breakout", "breakout"),
-        ("breakout", "breakout"),
-        ("BeamRiderNoFrameskip-v4", "beam_rider"),
-        ("ALE/MsPacman-v5", "ms_pacman"),
-        ("PongDeterministic-v4", "pong"),
-        ("UpNDownNoFrameskip-v4", "up_n_down"),
-        ("UpNDown", "up_n_down"),
+        ("BreakoutNoFrameskip-v4", "breakout", 0.0),
+        ("ALE/Breakout-v5", "breakout", 0.25),
+        ("BeamRiderNoFrameskip-v4", "beam_rider", 0.0),
+        ("ALE/MsPacman-v5", "ms_pacman", 0.25),
+        ("UpNDownNoFrameskip-v4", "up_n_down", 0.0),
     ],
 )
-def test_env_ids_name_their_game(env_id, game):
-    assert atari.game_name(env_id) == game
+def test_env_ids_mean_what_they_say(env_id, game, sticky):
+    # The paper's NoFrameskip-v4 games repeat no action; v5 repeats the previous one with probability 0.25.
+    assert atari.atari_game(env_id) == (game, sticky)
+
+
+@pytest.mark.parametrize(
+    "env_id,could_mean",
+    [
+        ("Breakout", "BreakoutNoFrameskip-v4 (the paper's) or ALE/Breakout-v5"),
+        ("breakout", "BreakoutNoFrameskip-v4 (the paper's) or ALE/Breakout-v5"),
+        ("PongDeterministic-v4", "PongNoFrameskip-v4 (the paper's) or ALE/Pong-v5"),
+        ("ALE/BreakoutNoFrameskip-v5", "BreakoutNoFrameskip-v4 (the paper's) or ALE/Breakout-v5"),
+        ("UpNDown", "UpNDownNoFrameskip-v4 (the paper's) or ALE/UpNDown-v5"),
+    ],
+)
+def test_a_loose_name_is_refused_with_the_ids_it_could_mean(env_id, could_mean):
+    with pytest.raises(ValueError, match=re.escape(could_mean)):
+        atari.atari_game(env_id)
+    with pytest.raises(ValueError, match="unknown env id 'NoSuchGame'"):
+        atari.atari_game("NoSuchGame")
+
+
+@pytest.mark.parametrize("env_id,sticky", [("ALE/Breakout-v5", 0.25), ("BreakoutNoFrameskip-v4", 0.0)])
+def test_the_vector_env_gets_the_ids_sticky_actions(env_id, sticky, monkeypatch):
+    import ale_py
+
+    seen = {}
+    real_init = ale_py.AtariVectorEnv.__init__
+
+    def init(self, *args, **kwargs):
+        seen.update(kwargs)
+        real_init(self, *args, **kwargs)
+
+    monkeypatch.setattr(ale_py.AtariVectorEnv, "__init__", init)
+    envs(num_envs=1, env_id=env_id).close()
+    assert seen["repeat_action_probability"] == sticky
 
 
 def test_observations_are_stacked_uint8_84x84_oldest_first():
@@ -290,3 +321,14 @@ def test_training_and_evaluation_videos_are_whole_games_in_colour(tmp_path):
         video = iio.imread(path)
         assert video.shape[1:] == (210, 160, 3) and len(video) > 4 * 60 and iio.immeta(path)["fps"] == 60, path
         assert np.abs(video[..., 0].astype(int) - video[..., 2]).mean() > 2, f"{path} is gray"
+
+
+def test_videos_of_sticky_games_are_refused_before_training(tmp_path, monkeypatch, capsys):
+    # A video replays a game from its actions, which sticky actions would not repeat.
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["ppo_atari.py", "--env-id", "ALE/Breakout-v5", "--capture-video"])
+    monkeypatch.setattr(atari, "train", lambda args: pytest.fail("training started"))
+    with pytest.raises(SystemExit) as stopped:
+        atari.main()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert stopped.value.code == 2 and len(err) == 1 and "sticky actions" in err[0], err
