@@ -231,6 +231,8 @@ BAD_INPUTS = [
     (["--update-epochs", "0"], "--update-epochs must be positive"),
     (["--device", "tpu"], "--device tpu is not available"),
     (["--run-dir", "afile"], "is a file"),
+    (["--run-dir", "afile/sub"], "--run-dir afile/sub cannot be created or written"),
+    (["--run-dir", "/proc/1/nope"], "--run-dir /proc/1/nope cannot be created or written"),
     (["--run-dir", "oldrun"], "already holds a run: continue it with --resume oldrun/checkpoint.pt"),
     (["--env-id", "NoSuchEnv-v0"], "unknown env id"),
     (["--env-id", "{wrong_action_space_env}"], "action space"),
