@@ -39,13 +39,9 @@ class Args:
     exp_name: str = SCRIPT[: -len(".py")]  # the experiment's name, part of the run directory's
     seed: int = 1  # seed of torch and of the environments
     device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto is cuda when there is one)
-    compile: bool = (
-        False  # torch.compile the policy step and the minibatch update (it compiles in the first iterations)
-    )
+    compile: bool = False  # torch.compile the policy step and the minibatch update (slower to start, faster to run)
     torch_threads: int = 2  # torch CPU threads (the CNN's convolutions use a second thread)
-    run_dir: str | None = (
-        None  # where TensorBoard logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
-    )
+    run_dir: str | None = None  # where the logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
     capture_video: bool = False  # film games 0, 1, 8, 27, ... of the first env in training, and every evaluation game
     # Algorithm: the paper's Atari settings (Table 5) where it gives one, else the implementation detail cited
     # an Atari game: <Game>NoFrameskip-v4, as in the paper (no sticky actions), or ALE/<Game>-v5 (sticky actions, 0.25)
@@ -63,9 +59,7 @@ class Args:
     minibatch_size: int = 256  # minibatch size (paper: 32 x 8 = 256); must divide --num-envs x --num-steps
     update_epochs: int = 3  # epochs K over each rollout (paper: 3)
     norm_adv: bool = True  # normalize advantages per minibatch (core detail 7)
-    clip_coef: float = (
-        0.1  # clip range epsilon of L^CLIP at the start (paper: 0.1 x alpha), and the value loss's, fixed
-    )
+    clip_coef: float = 0.1  # clip range epsilon of L^CLIP at the start (paper: 0.1 x alpha), and the value loss's
     clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef (core detail 9; not in eq. (9))
     ent_coef: float = 0.01  # entropy bonus coefficient c2 (paper: 0.01)
     vf_coef: float = 1.0  # c1 of eq. (9), on the squared error (V - V_targ)^2 (paper: 1)

@@ -36,13 +36,9 @@ class Args:
     exp_name: str = SCRIPT[: -len(".py")]  # the experiment's name, part of the run directory's
     seed: int = 1  # seed of torch and of the environments
     device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto: the CPU, where small MLPs run fastest)
-    compile: bool = (
-        False  # torch.compile the policy step and the minibatch update (it compiles in the first iterations)
-    )
+    compile: bool = False  # torch.compile the policy step and the minibatch update (slower to start, faster to run)
     torch_threads: int = 1  # torch CPU threads
-    run_dir: str | None = (
-        None  # where TensorBoard logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
-    )
+    run_dir: str | None = None  # where the logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
     # film episodes 0, 1, 8, 27, ... of the first env in training (every 1000th after 1000), and each evaluation episode
     capture_video: bool = False
     # Algorithm: the paper's MuJoCo settings (Table 3) where it gives one, else the implementation detail cited
