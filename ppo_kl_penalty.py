@@ -320,7 +320,8 @@ def train(args):
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
     with contextlib.ExitStack() as on_exit:  # whatever train() changes or opens is undone or closed on every exit
         stop = on_exit.enter_context(process_settings(args))
-        video_prefix = f"from-step-{checkpoint['global_step'] if checkpoint else 0}"  # a resumed run's overwrite none
+        # Videos are named by the step they start from, so that a resumed run overwrites none.
+        video_prefix = f"from-step-{checkpoint['global_step'] if checkpoint else 0}"
         envs = make_envs(args, f"{run_dir}/videos", video_prefix)  # core detail 1
         on_exit.callback(envs.close)
         obs_dim = envs.single_observation_space.shape[0]
