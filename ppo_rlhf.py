@@ -22,7 +22,6 @@ from typing import Literal
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from torch.distributions import Categorical
 
 SCRIPT = os.path.basename(__file__)
 
@@ -82,8 +81,7 @@ def compute_rewards(scores, logprobs, ref_logprobs, mask, kl_coef):
     """Ziegler et al.'s R(x, y) = r(x, y) - beta log(pi(y|x) / pi_SFT(y|x)) over the tokens [B, L]: -beta times each
     token's log-ratio, and the score at the last masked position (a row with no EOS gets its penalty as its score)."""
     rewards = kl_coef * (ref_logprobs - logprobs) * mask
-    last = mask.sum(1).long() - 1
-    rewards[torch.arange(len(scores)), last] += scores
+    rewards[torch.arange(len(scores)), mask.sum(1).long() - 1] += scores
     return rewards
 
 
@@ -259,7 +257,7 @@ def new_model(args, device, state=None):
 
 def response_dist(logits, temperature):
     """The distribution of each response token [B, L] from logits [B, P + L, V], at the sampling temperature."""
-    return Categorical(logits=logits[:, PROMPT_LENGTH - 1 : -1] / temperature, validate_args=False)
+    return torch.distributions.Categorical(logits=logits[:, PROMPT_LENGTH - 1 : -1] / temperature, validate_args=False)
 
 
 # TRAINING
@@ -318,10 +316,9 @@ def train_reward_model(args, sft, run_dir, device, stop):
     if args.reward_model_checkpoint:
         return new_model(args, device, load_checkpoint(args.reward_model_checkpoint, "reward_model")["model"])
     torch.manual_seed(args.seed + 1)
-    chunks = [min(512, 2 * args.rm_pairs - i) for i in range(0, 2 * args.rm_pairs, 512)]
-    samples = [generate(sft, n, args.response_length, args.temperature) for n in chunks]
-    tokens = torch.cat([tokens for tokens, _ in samples])
-    mask = torch.cat([mask for _, mask in samples])
+    n = 2 * args.rm_pairs  # sampled 512 at a time: larger batches run slower on a CPU
+    samples = [generate(sft, min(512, n - i), args.response_length, args.temperature) for i in range(0, n, 512)]
+    tokens, mask = map(torch.cat, zip(*samples, strict=True))
     gold, _ = gold_scores(tokens, mask)
     # Sample i against sample i + rm_pairs: the gold reward chooses, and ties are dropped.
     a = torch.arange(args.rm_pairs, device=device)[gold[: args.rm_pairs] != gold[args.rm_pairs :]]
@@ -329,6 +326,8 @@ def train_reward_model(args, sft, run_dir, device, stop):
     chosen = torch.where(gold[a] > gold[b], a, b)
     rejected = torch.where(gold[a] > gold[b], b, a)
     n_train = len(chosen) - len(chosen) // 10
+    if n_train == len(chosen):
+        raise Diverged(f"only {len(chosen)} pairs differ in gold reward: raise --sft-steps or --rm-pairs")
     order = torch.cat([torch.randperm(n_train, device=device) for _ in range(args.rm_epochs)])
     reward_model = copy.deepcopy(sft)
 
