@@ -55,10 +55,10 @@ class Args:
     minibatch_size: int = 32  # responses per minibatch; must divide --batch-size
     update_epochs: int = 4  # epochs K over each rollout
     learning_rate: float = 1e-4  # Adam step size of the policy and its value function
-    kl_coef: float = 0.05  # beta of the per-token penalty -beta (log pi - log pi_SFT); 0 removes the leash
+    kl_coef: float = 0.05  # beta of the per-token penalty -beta (log pi - log pi_SFT), TRL's default; 0: no leash
     adaptive_kl: bool = False  # adapt beta toward --kl-target with Ziegler et al.'s controller
     kl_target: float = 2.0  # the KL[pi || pi_SFT] per response, in nats, that the controller aims at
-    kl_horizon: int = 1000  # the controller's horizon, in responses
+    kl_horizon: int = 1000  # the controller's horizon, in responses (Ziegler et al.'s code: 10000, for longer runs)
     gamma: float = 1.0  # discount over tokens
     gae_lambda: float = 0.95  # GAE lambda over tokens
     clip_coef: float = 0.2  # clip range epsilon of L^CLIP, also the value loss's
