@@ -79,6 +79,22 @@ def read_run(run_dir):
     return checkpoint, rows, beta, series, updates
 
 
+# ppo_rlhf.py's rlhf/* scalars, kept per iteration beside a run's CSV (<suite>/rlhf/).
+RLHF_STATS = ("score", "gold_score", "kl", "kl_coef", "entropy", "response_length", "eos_fraction", "well_formed")
+
+
+def read_rlhf(run_dir):
+    """A run's rlhf/* scalars per iteration, (step, *RLHF_STATS), or None for a script that logs none."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    acc.Reload()
+    if not all(f"rlhf/{name}" in acc.Tags()["scalars"] for name in RLHF_STATS):
+        return None
+    columns = [acc.Scalars(f"rlhf/{name}") for name in RLHF_STATS]
+    return [(events[0].step, *(e.value for e in events)) for events in zip(*columns, strict=True)]
+
+
 def write_csv(path, header, rows):
     """A results CSV: '# key: value' header lines, then global_step, episodic_return, episodic_length."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -33,7 +33,17 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import UPDATE_STATS, load_script, machine, read_run, score, versions, write_csv  # noqa: E402
+from common import (  # noqa: E402
+    RLHF_STATS,
+    UPDATE_STATS,
+    load_script,
+    machine,
+    read_rlhf,
+    read_run,
+    score,
+    versions,
+    write_csv,
+)
 
 # The paper's 7 MuJoCo tasks (§6.1 used gym's -v1), in today's -v5, except InvertedDoublePendulum: its -v5 pays no
 # healthy reward on the step that falls, unlike the paper's -v1, and -v4 keeps -v1's reward (the shortfalls suite
@@ -59,6 +69,8 @@ class Suite:
     only: dict[str, tuple[list[str], list[int]]] = field(
         default_factory=dict
     )  # variant -> the envs and seeds it runs on
+    env_flag: str | None = "--env-id"  # how the script takes the env; None: the "env" is only the runs' label
+    budget_flag: str = "--total-timesteps"  # how the script takes the budget
 
 
 SUITES = {
@@ -126,6 +138,24 @@ SUITES = {
         " SB3's PPO (RL Zoo) beside it",
         only={"sb3": (["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4"], [1])},
     ),
+    # RLHF (issue 29): beta of the KL penalty to pi_SFT fixed at 0 (no leash), 0.01, 0.05 (the default) and 0.2, or
+    # adapted by Ziegler et al.'s controller toward 2 nats from 0.05. "reviews" is the script's own language, not an
+    # env; the budget is in responses. Each run trains its own stages 1 and 2, which depend only on the seed.
+    "rlhf": Suite(
+        {
+            "beta0": ("ppo_rlhf.py", ["--kl-coef", "0"]),
+            "beta0.01": ("ppo_rlhf.py", ["--kl-coef", "0.01"]),
+            "beta0.05": ("ppo_rlhf.py", []),
+            "beta0.2": ("ppo_rlhf.py", ["--kl-coef", "0.2"]),
+            "adaptive": ("ppo_rlhf.py", ["--adaptive-kl"]),
+        },
+        ["reviews"],
+        [1, 2, 3],
+        12_800,
+        "ppo_rlhf.py with beta 0, 0.01, 0.05 (its default) and 0.2, and the adaptive controller toward 2 nats",
+        env_flag=None,
+        budget_flag="--total-episodes",
+    ),
 }
 
 
@@ -141,6 +171,8 @@ class Job:
     results_dir: Path
     runs_dir: Path
     progress: int = field(default=0, compare=False)
+    env_flag: str | None = "--env-id"
+    budget_flag: str = "--total-timesteps"
 
     @property
     def name(self):
@@ -169,11 +201,10 @@ class Job:
             "python",
             self.script,
             *self.flags,
-            "--env-id",
-            self.env_id,
+            *([self.env_flag, self.env_id] if self.env_flag else []),
             "--seed",
             str(self.seed),
-            "--total-timesteps",
+            self.budget_flag,
             str(self.total_timesteps),
             "--torch-threads",
             "1",
@@ -215,7 +246,18 @@ def make_grid(suite, variants=None, envs=None, seeds=None, total_timesteps=None,
     results_dir = Path(results_root or ROOT / "benchmarks" / "results") / folder
     runs_dir = Path(runs_root or ROOT / "benchmarks" / "runs") / folder
     return [
-        Job(suite, variant, *spec.variants[variant], resolve_env(env, spec.envs), seed, total, results_dir, runs_dir)
+        Job(
+            suite,
+            variant,
+            *spec.variants[variant],
+            resolve_env(env, spec.envs),
+            seed,
+            total,
+            results_dir,
+            runs_dir,
+            env_flag=spec.env_flag,
+            budget_flag=spec.budget_flag,
+        )
         for variant in (variants or spec.variants)
         for env in (envs or spec.envs)
         for seed in (seeds or spec.seeds)
@@ -330,6 +372,13 @@ def finish(job):
         write_series(job.results_dir / "beta" / f"{job.name}.csv", ("beta", "kl"), series)
     if updates:  # the update's statistics per iteration, for the report's diagnostics
         write_series(job.results_dir / "updates" / f"{job.name}.csv", UPDATE_STATS, updates)
+    rlhf = read_rlhf(job.run_dir)
+    if rlhf:  # ppo_rlhf.py: the rlhf/* scalars per iteration, and the responses it printed last
+        write_series(job.results_dir / "rlhf" / f"{job.name}.csv", RLHF_STATS, rlhf)
+        log = (job.run_dir / "log.txt").read_text().splitlines() if (job.run_dir / "log.txt").exists() else []
+        samples = [line.strip() for line in log if line.startswith("  score ")][-3:]
+        (job.results_dir / "samples").mkdir(parents=True, exist_ok=True)
+        (job.results_dir / "samples" / f"{job.name}.txt").write_text("".join(f"{line}\n" for line in samples))
     write_csv(job.csv, header, rows)  # last: the CSV's presence means that the run is finished
     return score(rows)
 

@@ -34,6 +34,39 @@ TINY = {
         ).split(),
         "wrong_action_space_env": "Hopper-v5",
     },
+    # ppo_rlhf.py makes its own text: no env, so the checks of envs, episodes and videos skip it (needs_env), and
+    # tests/test_rlhf.py runs its command line on this tiny budget: 4 PPO iterations of 16 responses.
+    "ppo_rlhf.py": {
+        "no_env": "ppo_rlhf.py has no gymnasium env, episodes or videos: tests/test_rlhf.py checks its command line",
+        "tiny": [
+            "--d-model",
+            "16",
+            "--n-layer",
+            "1",
+            "--n-head",
+            "2",
+            "--response-length",
+            "16",
+            "--sft-steps",
+            "60",
+            "--sft-learning-rate",
+            "0.01",
+            "--rm-pairs",
+            "128",
+            "--rm-epochs",
+            "1",
+            "--rm-batch-size",
+            "32",
+            "--total-episodes",
+            "64",
+            "--batch-size",
+            "16",
+            "--minibatch-size",
+            "8",
+            "--update-epochs",
+            "2",
+        ],
+    },
     "ppo_kl_penalty.py": {
         "env_id": "Hopper-v5",
         "tiny": "--num-steps 64 --minibatch-size 32 --update-epochs 2 --total-timesteps 128 --ent-coef 0.01".split(),
@@ -41,6 +74,12 @@ TINY = {
         "wrong_action_space_env": "CartPole-v1",
     },
 }
+
+
+def needs_env(script):
+    """Skip a check of gymnasium envs, episodes or videos for a script that has none, saying why."""
+    if "no_env" in TINY[script]:
+        pytest.skip(TINY[script]["no_env"])
 
 
 @functools.cache

@@ -670,3 +670,22 @@ def test_throughput_replaces_only_its_own_section(tmp_path):
     assert text.startswith("# Throughput") and "| a | 3 |" in text and "| a | 1 |" not in text
     assert "| b | 2 |" in text and text.index("## mujoco") < text.index("## atari")
     assert text.count("<!-- suite: mujoco -->") == 1
+
+
+def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
+    rlhf = run.load_script("ppo_rlhf.py")
+    job = run.make_grid("rlhf", ["beta0.05"], seeds=[1], results_root=tmp_path / "results", runs_root=tmp_path)[0]
+    assert "--total-episodes 12800" in " ".join(job.command()) and "--env-id" not in job.command()
+    # A tiny run in the job's folder, as if the runner had made it, with the log the runner keeps.
+    tiny = dict(d_model=16, n_layer=1, n_head=2, response_length=16, sft_steps=60, sft_learning_rate=0.01, rm_pairs=128)
+    tiny |= dict(rm_epochs=1, rm_batch_size=32, total_episodes=64, batch_size=16, minibatch_size=8, torch_threads=1)
+    rlhf.train(rlhf.Args(**tiny, run_dir=str(job.run_dir)))
+    (job.run_dir / "log.txt").write_text(
+        "stage 3, PPO: iteration 4/4\n  score +1.00 | gold  +2 | the film was good <eos>\n"
+    )
+    run.finish(job)
+    series = (job.results_dir / "rlhf" / f"{job.name}.csv").read_text().splitlines()
+    assert series[0] == "global_step," + ",".join(run.RLHF_STATS) and len(series) == 1 + 4
+    text = report.report(job.results_dir)
+    assert "| beta0.05 | " in text and "the film was good" in text
+    assert (job.results_dir / "curves" / "reviews.png").exists()

@@ -1,6 +1,7 @@
 """The real command line of every script, on tiny budgets: smoke, determinism, checkpoints,
 resume, evaluation, video and bad input."""
 
+import dataclasses
 import shutil
 import signal
 import subprocess
@@ -9,7 +10,18 @@ import sys
 import numpy as np
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, SCRIPTS, TINY, load_script, run_cli, signal_at_checkpoint, tb_scalars, train_tiny
+from conftest import (
+    ONE_THREAD,
+    ROOT,
+    SCRIPTS,
+    TINY,
+    load_script,
+    needs_env,
+    run_cli,
+    signal_at_checkpoint,
+    tb_scalars,
+    train_tiny,
+)
 
 EXPECTED_SCALARS = {
     "charts/episodic_return",
@@ -47,20 +59,14 @@ def test_import_runs_nothing_heavy(script):
 
 def test_help_lists_the_flags(script, tmp_path):
     out = run_cli(script, "--help", cwd=tmp_path).stdout
-    for flag in [
-        "--env-id",
-        "--total-timesteps",
-        "--num-envs",
-        "--num-steps",
-        "--seed",
-        "--resume",
-        "--eval-checkpoint",
-        "--save-every",
-    ]:
+    env_flags = [] if "no_env" in TINY[script] else ["--env-id", "--total-timesteps", "--num-envs", "--num-steps"]
+    for flag in [*env_flags, "--seed", "--resume", "--save-every", "--device", "--compile", "--torch-threads"]:
         assert flag in out
+    assert "no_env" in TINY[script] or "--eval-checkpoint" in out
 
 
 def test_smoke_run_logs_and_checkpoints(script, tiny_run):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     run_dir, proc = tiny_run(script)
     tiny = dict(zip(TINY[script]["tiny"][::2], map(float, TINY[script]["tiny"][1::2]), strict=True))
     batch, total = int(tiny.get("--num-envs", 1) * tiny["--num-steps"]), int(tiny["--total-timesteps"])
@@ -86,6 +92,7 @@ def test_smoke_run_logs_and_checkpoints(script, tiny_run):
 
 
 def test_same_seed_same_result_different_seed_different(script, tmp_path, tiny_run):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     a, _ = tiny_run(script)  # the default seed, 1
     b, _ = train_tiny(script, tmp_path, "b", "--seed", "1")
     c, _ = train_tiny(script, tmp_path, "c", "--seed", "2")
@@ -99,6 +106,7 @@ def test_same_seed_same_result_different_seed_different(script, tmp_path, tiny_r
 
 
 def test_seeds_of_different_runs_share_no_env(script, tmp_path, monkeypatch):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     # Gymnasium and ale-py seed env i with s + i when given one seed s: seed 1's second env would be seed 2's first.
     import ale_py
     import gymnasium
@@ -136,6 +144,7 @@ def test_seeds_of_different_runs_share_no_env(script, tmp_path, monkeypatch):
 
 
 def test_interrupt_saves_and_resume_continues_the_curve(script, tmp_path):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     cfg = TINY[script]
     run_dir = tmp_path / "run"
     # A run long enough to interrupt: 32 iterations of 64 steps, with a checkpoint every iteration.
@@ -178,6 +187,7 @@ def test_interrupt_saves_and_resume_continues_the_curve(script, tmp_path):
 
 
 def test_checkpoint_holds_optimizer_and_statistics(script, tiny_run):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     run_dir, _ = tiny_run(script)
     module = load_script(script)
     checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"))
@@ -188,6 +198,7 @@ def test_checkpoint_holds_optimizer_and_statistics(script, tiny_run):
 
 
 def test_eval_runs_the_saved_policy_and_films_it(script, tmp_path, tiny_run):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     import imageio.v3 as iio
 
     run_dir, _ = tiny_run(script)
@@ -204,6 +215,7 @@ def test_eval_runs_the_saved_policy_and_films_it(script, tmp_path, tiny_run):
 
 
 def test_eval_uses_the_saved_statistics(script, tmp_path, tiny_run):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     # Two checkpoints that differ only in their normalization statistics must act differently.
     module = load_script(script)
     if not hasattr(module, "RunningMeanStd"):
@@ -251,6 +263,14 @@ BAD_INPUTS = [
 IN_A_SUBPROCESS = {"--learning-rate must be a finite number, got nan", "unknown env id", "is a file"}
 
 
+def skip_flags_it_lacks(script, args):
+    """A bad value of a flag the script does not have is not its case: ppo_rlhf.py has no env or env steps."""
+    flags = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(load_script(script).Args)}
+    missing = [a for a in args if a.startswith("--") and a not in flags]
+    if missing:
+        pytest.skip(f"{script} has no {', '.join(missing)}")
+
+
 def bad_input_files(tmp_path):
     (tmp_path / "corrupt.pt").write_bytes(b"\x80\x02this is not a checkpoint")
     (tmp_path / "afile").write_text("")
@@ -261,6 +281,7 @@ def bad_input_files(tmp_path):
 
 @pytest.mark.parametrize("args,message", BAD_INPUTS, ids=[m for _, m in BAD_INPUTS])
 def test_bad_input_is_one_clear_line_before_training(script, tmp_path, args, message, monkeypatch, capsys):
+    skip_flags_it_lacks(script, args)
     bad_input_files(tmp_path)
     args = [a.format(**TINY[script]) for a in args]
     module = load_script(script)
@@ -281,6 +302,7 @@ def test_bad_input_is_one_clear_line_before_training(script, tmp_path, args, mes
     "args,message", [case for case in BAD_INPUTS if case[1] in IN_A_SUBPROCESS], ids=sorted(IN_A_SUBPROCESS)
 )
 def test_bad_input_from_the_shell_is_one_line_and_exit_2(script, tmp_path, args, message):
+    skip_flags_it_lacks(script, args)
     bad_input_files(tmp_path)
     proc = run_cli(script, *[a.format(**TINY[script]) for a in args], cwd=tmp_path, check=False)
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
@@ -293,6 +315,7 @@ def test_bad_input_from_the_shell_is_one_line_and_exit_2(script, tmp_path, args,
     "script", [s for s in SCRIPTS if s != "ppo_atari.py"]
 )  # Atari's: test_atari.py, whole games in colour
 def test_training_records_video_of_the_first_env(script, tmp_path):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     import imageio.v3 as iio
 
     run_dir, _ = train_tiny(script, tmp_path, "run", "--capture-video")
@@ -304,6 +327,7 @@ def test_training_records_video_of_the_first_env(script, tmp_path):
 
 @pytest.mark.parametrize("script", [s for s in SCRIPTS if s != "ppo_atari.py"])
 def test_atari_id_points_to_the_atari_script(script, tmp_path):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     proc = run_cli(script, "--env-id", "ALE/Breakout-v5", cwd=tmp_path, check=False)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "Use ppo_atari.py for Atari games" in lines[0], proc.stderr
@@ -311,6 +335,7 @@ def test_atari_id_points_to_the_atari_script(script, tmp_path):
 
 @pytest.mark.parametrize("script", [s for s in SCRIPTS if s != "ppo_atari.py"])
 def test_mujoco_scripts_check_their_input_without_ale_py(script, tmp_path):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     # A MuJoCo script copied into a project without ale-py still gives its one-line errors (sys.modules[name] = None
     # makes `import name` fail as if the package were not installed).
     code = (
@@ -323,6 +348,7 @@ def test_mujoco_scripts_check_their_input_without_ale_py(script, tmp_path):
 
 
 def test_divergence_stops_with_one_line_and_keeps_the_last_finite_checkpoint(script, tmp_path, tiny_run):
+    needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     run_dir = tmp_path / "run"
     shutil.copytree(tiny_run(script)[0], run_dir)
     path = run_dir / "checkpoint.pt"

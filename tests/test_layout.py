@@ -7,7 +7,7 @@ import signal
 
 import pytest
 import torch
-from conftest import ROOT, SCRIPTS, TINY, load_script
+from conftest import ROOT, TINY, load_script, scripts_with
 
 # Assignments of a tuple of values to a tuple of names that are a true pair, as the paper writes them.
 TRUE_PAIRS = {("T", "N")}
@@ -56,7 +56,11 @@ def failing_envs(*args, **kwargs):
     raise RuntimeError("the envs failed to start")
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
+# The scripts that step gymnasium or ale-py envs; ppo_rlhf.py's own tests check the same of its train().
+ENV_SCRIPTS = scripts_with("make_envs")
+
+
+@pytest.mark.parametrize("script", ENV_SCRIPTS)
 def test_train_restores_the_process_when_it_raises(script, tmp_path, monkeypatch):
     module = load_script(script)
     monkeypatch.setattr(module, "make_envs", failing_envs)
@@ -69,7 +73,7 @@ def test_train_restores_the_process_when_it_raises(script, tmp_path, monkeypatch
     assert torch.get_num_threads() == threads
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
+@pytest.mark.parametrize("script", ENV_SCRIPTS)
 def test_a_stop_is_an_exception_and_leaves_the_process_as_it_was(script, tmp_path, monkeypatch):
     # SIGINT during a run: train() saves, then raises the script's Stopped, never SystemExit; main() maps it to 130.
     module = load_script(script)
@@ -94,7 +98,7 @@ def test_a_stop_is_an_exception_and_leaves_the_process_as_it_was(script, tmp_pat
     assert torch.get_num_threads() == threads
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
+@pytest.mark.parametrize("script", scripts_with("process_settings"))
 def test_the_compile_setting_is_scoped_to_the_run(script):
     module = load_script(script)
     import torch._inductor.config as inductor

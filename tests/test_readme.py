@@ -23,7 +23,7 @@ def mentioned_details(line):
 
 
 def test_readme_is_short():
-    assert len(README.splitlines()) <= 240
+    assert len(README.splitlines()) <= 245  # about 240, with the RLHF section (issue 29)
 
 
 def test_every_detail_links_to_a_line_that_cites_it():

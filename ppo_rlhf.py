@@ -1,0 +1,599 @@
+"""PPO as RLHF uses it, in one file: the three stages of Ziegler et al. 2019 (arXiv:1909.08593) on a tiny transformer
+trained from scratch on a synthetic language of film reviews. Stage 1 fits pi_SFT to the language, stage 2 a reward
+model to pairs of pi_SFT's samples ranked by a hidden gold reward, and stage 3 fine-tunes pi_SFT on the RM's score
+with PPO-Clip (Schulman et al. 2017, arXiv:1707.06347, eq. (7), (9), (11)-(12)) and a KL penalty to pi_SFT (Ziegler
+et al. §2). The gold reward shows what the reward model cannot: whether a rising score is real.
+
+    python ppo_rlhf.py                     # the three stages in under 10 min on 2 cores: RM and gold scores rise
+    python ppo_rlhf.py --kl-coef 0         # no leash: the reward model's score against the gold score
+"""
+
+import copy
+import math
+import os
+import random
+import re
+import signal
+import sys
+import time
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+SCRIPT = os.path.basename(__file__)
+
+
+@dataclass
+class Args:
+    exp_name: str = SCRIPT[: -len(".py")]  # the name of this experiment, part of the run directory's name
+    seed: int = 1  # seed of the grammar's samples and of torch: on the CPU, one seed gives one run
+    device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto is the CPU, fastest for this size)
+    compile: bool = False  # apply torch.compile to the PPO minibatch update
+    torch_threads: int = 1  # torch CPU threads
+    run_dir: str | None = None  # where logs and checkpoints go (None: runs/reviews__{exp_name}__{seed}__{time})
+    # The networks: one causal transformer shape for pi_SFT, the reward model, the policy and the critic
+    d_model: int = 64  # width of the transformer
+    n_layer: int = 2  # number of transformer blocks
+    n_head: int = 4  # attention heads per block; must divide --d-model
+    response_length: int = 24  # the most tokens a response may have, its EOS included
+    temperature: float = 1.0  # sampling temperature, also used to recompute every log-prob
+    # Stage 1: the supervised model pi_SFT, fitted to reviews sampled from the grammar
+    sft_steps: int = 600  # gradient steps of next-token prediction
+    sft_batch_size: int = 64  # reviews per step
+    sft_learning_rate: float = 1e-3  # Adam step size
+    # Stage 2: the reward model, fitted to pairs of pi_SFT's responses ranked by the gold reward
+    rm_pairs: int = 4096  # pairs of responses (ties dropped), of which a tenth is held out for the accuracy
+    rm_epochs: int = 4  # epochs over the training pairs
+    rm_batch_size: int = 64  # pairs per step
+    rm_learning_rate: float = 1e-3  # Adam step size
+    # Stage 3: PPO against the reward model
+    total_episodes: int = 12_800  # responses sampled in all, rounded down to whole batches
+    batch_size: int = 64  # prompts per rollout
+    minibatch_size: int = 32  # responses per minibatch; must divide --batch-size
+    update_epochs: int = 4  # epochs K over each rollout
+    learning_rate: float = 1e-4  # Adam step size of the policy and its value function
+    kl_coef: float = 0.05  # beta of the per-token penalty -beta (log pi - log pi_SFT), TRL's default; 0: no leash
+    adaptive_kl: bool = False  # adapt beta toward --kl-target with Ziegler et al.'s controller
+    kl_target: float = 2.0  # the KL[pi || pi_SFT] per response, in nats, that the controller aims at
+    kl_horizon: int = 1000  # the controller's horizon, in responses (Ziegler et al.'s code: 10000, for longer runs)
+    gamma: float = 1.0  # discount over tokens
+    gae_lambda: float = 0.95  # GAE lambda over tokens
+    clip_coef: float = 0.2  # clip range epsilon of L^CLIP, also the value loss's
+    vf_coef: float = 0.1  # c1 of eq. (9), on the squared error
+    max_grad_norm: float = 1.0  # clip the global gradient norm to this
+    no_eos_score: float = -3.0  # the score of a response that never ends (no EOS), in the RM's normalized units
+    value_model: Literal["reward-model", "policy-head"] = "reward-model"  # a critic started from the RM, or a head
+    sft_checkpoint: str | None = None  # skip stage 1: take pi_SFT from this sft.pt
+    reward_model_checkpoint: str | None = None  # skip stage 2: take the reward model from this reward_model.pt
+    save_every: int = 25  # save the PPO checkpoint, and print samples, every this many iterations (and at the end)
+    resume: str | None = None  # continue the PPO stage saved in this checkpoint, with its hyperparameters
+
+
+# THE MATH
+def masked_mean(x, mask=None):
+    return x.mean() if mask is None else (x * mask).sum() / mask.sum()
+
+
+def compute_rewards(scores, logprobs, ref_logprobs, mask, kl_coef):
+    """Ziegler et al.'s R(x, y) = r(x, y) - beta log(pi(y|x) / pi_SFT(y|x)) over the tokens [B, L]: -beta times each
+    token's log-ratio, and the score at the last masked position (a row with no EOS gets its penalty as its score)."""
+    rewards = kl_coef * (ref_logprobs - logprobs) * mask
+    rewards[torch.arange(len(scores)), mask.sum(1).long() - 1] += scores
+    return rewards
+
+
+def compute_gae(rewards, values, mask, gamma, gae_lambda):
+    """Generalized advantage estimation, paper eq. (11)-(12), over the tokens of [B, L] responses. A response ends at
+    its last masked position: the values after it count as 0. The returns A + V are the value function's targets.
+
+    >>> compute_gae(torch.tensor([[0.0, 1.0, 0.0]]), torch.zeros(1, 3), torch.tensor([[1.0, 1.0, 0.0]]), 1, 0.5)[0]
+    tensor([[0.5000, 1.0000, 0.0000]])
+    """
+    values = values * mask
+    next_values = torch.cat([values[:, 1:], torch.zeros_like(values[:, :1])], 1)
+    # The paper's eq. (12), for all t at once: delta_t = r_t + gamma V(s_{t+1}) - V(s_t).
+    deltas = rewards * mask + gamma * next_values - values
+    # Then eq. (11), backwards over the tokens: A_t = delta_t + gamma lambda A_{t+1}, 0 after the end (delta is 0).
+    advantages = torch.zeros_like(rewards)
+    lastgaelam = torch.zeros_like(rewards[:, 0])
+    for t in reversed(range(rewards.shape[1])):
+        lastgaelam = deltas[:, t] + gamma * gae_lambda * lastgaelam
+        advantages[:, t] = lastgaelam
+    return advantages, advantages + values
+
+
+def clipped_surrogate_loss(ratio, advantages, clip_coef, mask=None):
+    """Minus L^CLIP, paper eq. (7): -E[min(r A, clip(r, 1 - eps, 1 + eps) A)], here over the masked tokens."""
+    surr1 = ratio * advantages
+    surr2 = torch.clamp(ratio, 1.0 - clip_coef, 1.0 + clip_coef) * advantages
+    return -masked_mean(torch.min(surr1, surr2), mask)
+
+
+def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True, mask=None):
+    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 over the masked tokens, optionally clipped (core
+    detail 9, not the paper's): the larger of the errors of V and of the old value moved at most clip_coef to V."""
+    v_loss_unclipped = (newvalue - returns) ** 2
+    if not clip_vloss:
+        return masked_mean(v_loss_unclipped, mask)
+    v_clipped = oldvalue + torch.clamp(newvalue - oldvalue, -clip_coef, clip_coef)
+    return masked_mean(torch.max(v_loss_unclipped, (v_clipped - returns) ** 2), mask)
+
+
+def preference_loss(chosen_scores, rejected_scores):
+    """The Bradley-Terry loss of a reward model, -log sigmoid(r_w - r_l), averaged over pairs."""
+    return -F.logsigmoid(chosen_scores - rejected_scores).mean()
+
+
+def adapt_kl_coef(kl_coef, kl, target, n_steps, horizon):
+    """Ziegler et al.'s controller (§2.2): beta <- beta (1 + K e), e = clip(KL / target - 1, -0.2, 0.2), K = n_steps /
+    horizon for the n_steps responses of the update. Not the PPO paper's §4 rule, which doubles or halves beta when
+    the KL between successive policies leaves [d_targ / 1.5, 1.5 d_targ], to keep each update small: here the KL is
+    to the fixed pi_SFT, and beta moves by at most 0.2 K, to keep the run near pi_SFT (PPO-Clip bounds each update).
+
+    >>> adapt_kl_coef(1.0, 12.0, 6.0, 500, 1000), adapt_kl_coef(1.0, 0.0, 6.0, 500, 1000)  # e clipped to +-0.2
+    (1.1, 0.9)
+    """
+    proportional_error = min(max(kl / target - 1.0, -0.2), 0.2)
+    return kl_coef * (1.0 + proportional_error * n_steps / horizon)
+
+
+# ENVIRONMENT: a language of film reviews, its hidden gold reward, prompts, and sampling
+NOUNS = ["film", "plot", "cast", "music", "ending", "script", "pace", "set"]
+VALENCE = {"awful": -3, "bad": -2, "dull": -1, "fine": 1, "good": 2, "superb": 3}
+MODIFIERS = {"very": 2, "not": -1}
+# PAD, BOS and EOS are distinct: PAD fills the tail of a sequence, and no loss or statistic reads it.
+WORDS = ["<pad>", "<bos>", "<eos>", "the", "was", "and", *MODIFIERS, *NOUNS, *VALENCE]
+PAD, BOS, EOS = range(3)
+TOKEN = {word: i for i, word in enumerate(WORDS)}
+PROMPT_LENGTH = 3  # "<bos> the NOUN": a response goes on from there
+BLOCK_SIZE = 32  # the longest sequence, prompt and response, that the networks take
+GOLD_PENALTY = -6.0  # the gold score of an ill-formed review: that of one "very awful" clause
+CLAUSE = rf"the ({'|'.join(NOUNS)}) was (?:(very|not) )?({'|'.join(VALENCE)})"
+
+
+def sample_review(rng):
+    """Words of a review from the grammar: 1 to 3 clauses "the NOUN was [very|not] ADJ" joined by "and", then EOS.
+    A policy may write more clauses: the gold reward counts them, and the reward model has never seen them."""
+    words = []
+    for clause in range(3):
+        modifier = rng.choice(["", "", "very", "not"])
+        words += ["and" if clause else "", "the", rng.choice(NOUNS), "was", modifier, rng.choice(list(VALENCE))]
+        if rng.random() < 0.5:
+            break
+    return [word for word in words if word] + ["<eos>"]
+
+
+def parse_review(text):
+    """The gold value of a review, the sum of its clauses' valences (x2 after "very", x-1 after "not"), or None if it
+    is not well formed.
+
+    >>> parse_review("the film was very good and the plot was not bad <eos>"), parse_review("the film was <eos>")
+    (6, None)
+    """
+    if not re.fullmatch(rf"{CLAUSE}( and {CLAUSE})* <eos>", text):
+        return None
+    return sum(MODIFIERS.get(modifier, 1) * VALENCE[adjective] for _, modifier, adjective in re.findall(CLAUSE, text))
+
+
+def gold_scores(tokens, mask):
+    """The hidden gold reward of each sequence [B, T], and whether it is well formed: what the RM should learn."""
+    lengths = (PROMPT_LENGTH + mask.sum(1).long()).tolist()
+    texts = [" ".join(WORDS[t] for t in row[1:n]) for row, n in zip(tokens.tolist(), lengths, strict=True)]
+    values = [parse_review(text) for text in texts]
+    gold = torch.tensor([GOLD_PENALTY if value is None else float(value) for value in values])
+    return gold.to(tokens.device), torch.tensor([value is not None for value in values]).float().to(tokens.device)
+
+
+@torch.no_grad()
+def generate(lm, n, response_length, temperature):
+    """n prompts "<bos> the NOUN" and responses from lm: sequences [n, P + response_length] with PAD after the first
+    EOS, and their mask, 1 on the response up to and including its first EOS (on all of it if it has none)."""
+    nouns = torch.randint(len(NOUNS), (n, 1), device=lm.lm_head.weight.device) + TOKEN[NOUNS[0]]
+    tokens = torch.cat([torch.full_like(nouns, BOS), torch.full_like(nouns, TOKEN["the"]), nouns], 1)
+    for _ in range(response_length):
+        logits = lm(tokens)[0][:, -1] / temperature
+        tokens = torch.cat([tokens, torch.multinomial(logits.softmax(-1), 1)], 1)
+        if (tokens[:, PROMPT_LENGTH:] == EOS).any(1).all():
+            break
+    responses = F.pad(tokens[:, PROMPT_LENGTH:], (0, PROMPT_LENGTH + response_length - tokens.shape[1]), value=PAD)
+    is_eos = (responses == EOS).long()
+    mask = ((is_eos.cumsum(1) - is_eos) == 0).float()
+    return torch.cat([tokens[:, :PROMPT_LENGTH], responses.masked_fill(mask == 0, PAD)], 1), mask
+
+
+# AGENT: a tiny causal transformer, the policy, and its value function
+class TinyLM(nn.Module):
+    """A causal transformer in GPT-2's layout (pre-LayerNorm blocks of self-attention and a 4x wider MLP) with two
+    heads: next-token logits, and a scalar at each position, the reward model's score (read at the EOS) or a value."""
+
+    def __init__(self, d_model, n_layer, n_head):
+        super().__init__()
+        self.tok_emb = nn.Embedding(len(WORDS), d_model)
+        self.pos_emb = nn.Embedding(BLOCK_SIZE, d_model)
+        block = nn.TransformerEncoderLayer(d_model, n_head, 4 * d_model, 0.0, "gelu", batch_first=True, norm_first=True)
+        self.blocks = nn.TransformerEncoder(block, n_layer, enable_nested_tensor=False)
+        self.ln_f = nn.LayerNorm(d_model)
+        self.lm_head = nn.Linear(d_model, len(WORDS), bias=False)
+        self.score_head = nn.Linear(d_model, 1)
+        nn.init.zeros_(self.score_head.weight)  # the scalar starts at 0
+        nn.init.zeros_(self.score_head.bias)
+
+    def forward(self, tokens):
+        # Causal: a position sees only those before it, so the PADs after an EOS change nothing before them.
+        x = self.tok_emb(tokens) + self.pos_emb(torch.arange(tokens.shape[1], device=tokens.device))
+        causal = nn.Transformer.generate_square_subsequent_mask(tokens.shape[1], device=tokens.device)
+        x = self.ln_f(self.blocks(x, mask=causal, is_causal=True))
+        return self.lm_head(x), self.score_head(x).squeeze(-1)
+
+    def score(self, tokens, mask):
+        """The scalar of each sequence at its last response token (the EOS, if it has one): a reward model's score."""
+        return self(tokens)[1][torch.arange(len(tokens)), PROMPT_LENGTH + mask.sum(1).long() - 1]
+
+
+class Agent(nn.Module):
+    """The policy pi_theta, started from pi_SFT, and its value function: by default a critic started from the RM,
+    which reads responses as the RM does and cannot pull on the policy's weights; or a head on the policy (faster)."""
+
+    def __init__(self, sft, reward_model, value_model):
+        super().__init__()
+        self.policy = copy.deepcopy(sft)
+        self.critic = copy.deepcopy(reward_model) if value_model == "reward-model" else None
+
+    def forward(self, tokens):
+        """Logits and values at every position; position t holds what predicts token t + 1."""
+        logits, values = self.policy(tokens)
+        return logits, values if self.critic is None else self.critic(tokens)[1]
+
+
+def new_model(args, device, state=None):
+    model = TinyLM(args.d_model, args.n_layer, args.n_head).to(device)
+    if state is not None:
+        model.load_state_dict(state)
+    return model
+
+
+def response_dist(logits, temperature):
+    """The distribution of each response token [B, L] from logits [B, P + L, V], at the sampling temperature."""
+    return torch.distributions.Categorical(logits=logits[:, PROMPT_LENGTH - 1 : -1] / temperature, validate_args=False)
+
+
+# TRAINING
+# How a run ends early: stopped by SIGINT or SIGTERM, after saving what it could; or diverged, no longer finite.
+class Stopped(Exception): ...
+
+
+class Diverged(Exception): ...
+
+
+def report(stage, done, total, start, text, first=0):
+    """A progress line at each tenth of a stage and at its end, with the stage's ETA."""
+    if done % max(total // 10, 1) == 0 or done == total:
+        eta = (total - done) * (time.time() - start) / max(done - first, 1) / 60
+        print(f"{stage} {done:,}/{total:,} | {text} | ETA {eta:.1f} min", flush=True)
+
+
+def fit(model, loss_fn, steps, learning_rate, stage, stop):
+    """Stages 1 and 2: `steps` Adam steps on loss_fn(step), with the loss in the progress lines."""
+    optimizer = torch.optim.Adam(model.parameters(), lr=learning_rate)
+    start = time.time()
+    for step in range(1, steps + 1):
+        loss = loss_fn(step)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        if not math.isfinite(loss.item()):
+            raise Diverged(f"the loss of stage {stage} is not finite at step {step}; try a smaller learning rate")
+        report(f"stage {stage}: step", step, steps, start, f"loss {loss.item():.3f}")
+        if stop:
+            raise Stopped(f"stopped in stage {stage} at step {step}; the stages before it are saved")
+
+
+def train_sft(args, run_dir, device, stop):
+    """Stage 1: pi_SFT, a transformer fitted to reviews from the grammar by next-token prediction."""
+    if args.sft_checkpoint:
+        return new_model(args, device, load_checkpoint(args.sft_checkpoint, "sft")["model"])
+    torch.manual_seed(args.seed)
+    rng = random.Random(args.seed)
+    sft = new_model(args, device)
+
+    def loss_fn(step):
+        rows = [[BOS] + [TOKEN[w] for w in sample_review(rng)] for _ in range(args.sft_batch_size)]
+        tokens = torch.tensor([row + [PAD] * (BLOCK_SIZE - len(row)) for row in rows], device=device)
+        # The EOS is a target like any word; the PADs after it are none.
+        return F.cross_entropy(sft(tokens[:, :-1])[0].transpose(1, 2), tokens[:, 1:], ignore_index=PAD)
+
+    fit(sft, loss_fn, args.sft_steps, args.sft_learning_rate, "1, SFT", stop)
+    save_checkpoint(os.path.join(run_dir, "sft.pt"), "sft", args, model=sft.state_dict())
+    return sft
+
+
+def train_reward_model(args, sft, run_dir, device, stop):
+    """Stage 2: a reward model, pi_SFT with its scalar head read at the EOS, fitted to pairs of pi_SFT's responses
+    ranked by the gold reward. It only ever sees pi_SFT's text: what it says of any other text is a guess."""
+    if args.reward_model_checkpoint:
+        return new_model(args, device, load_checkpoint(args.reward_model_checkpoint, "reward_model")["model"])
+    torch.manual_seed(args.seed + 1)
+    n = 2 * args.rm_pairs  # sampled 512 at a time: larger batches run slower on a CPU
+    samples = [generate(sft, min(512, n - i), args.response_length, args.temperature) for i in range(0, n, 512)]
+    tokens, mask = map(torch.cat, zip(*samples, strict=True))
+    gold, _ = gold_scores(tokens, mask)
+    # Sample i against sample i + rm_pairs: the gold reward chooses, and ties are dropped.
+    a = torch.arange(args.rm_pairs, device=device)[gold[: args.rm_pairs] != gold[args.rm_pairs :]]
+    b = a + args.rm_pairs
+    chosen = torch.where(gold[a] > gold[b], a, b)
+    rejected = torch.where(gold[a] > gold[b], b, a)
+    n_train = len(chosen) - len(chosen) // 10
+    if n_train == len(chosen):
+        raise Diverged(f"only {len(chosen)} pairs differ in gold reward: raise --sft-steps or --rm-pairs")
+    order = torch.cat([torch.randperm(n_train, device=device) for _ in range(args.rm_epochs)])
+    reward_model = copy.deepcopy(sft)
+
+    def loss_fn(step):
+        mb_inds = order[(step - 1) * args.rm_batch_size : step * args.rm_batch_size]
+        r_w = reward_model.score(tokens[chosen[mb_inds]], mask[chosen[mb_inds]])
+        return preference_loss(r_w, reward_model.score(tokens[rejected[mb_inds]], mask[rejected[mb_inds]]))
+
+    steps = math.ceil(len(order) / args.rm_batch_size)
+    fit(reward_model, loss_fn, steps, args.rm_learning_rate, "2, reward model", stop)
+    with torch.no_grad():
+        scores = reward_model.score(tokens, mask)
+        accuracy = (scores[chosen[n_train:]] > scores[rejected[n_train:]]).float().mean().item()
+        # Normalize the score to mean 0 and std 1 on pi_SFT's responses, through the scalar head.
+        reward_model.score_head.weight.div_(scores.std())
+        reward_model.score_head.bias.sub_(scores.mean()).div_(scores.std())
+    print(f"stage 2: the reward model ranks {accuracy:.1%} of {len(chosen) - n_train} held-out pairs as gold does")
+    state = {"model": reward_model.state_dict(), "held_out_accuracy": accuracy}
+    save_checkpoint(os.path.join(run_dir, "reward_model.pt"), "reward_model", args, **state)
+    return reward_model
+
+
+@torch.no_grad()
+def rollout(agent, reference, reward_model, n, args):
+    """Sample a response to each prompt from pi_theta_old, and gather what PPO needs as a dict of [B, ...] tensors."""
+    tokens, mask = generate(agent.policy, n, args.response_length, args.temperature)
+    responses = tokens[:, PROMPT_LENGTH:]
+    logits, values = agent(tokens)
+    # The log-probs are recomputed as the tokens were sampled, at the same temperature: the ratio starts at 1.
+    dist = response_dist(logits, args.temperature)
+    ref_logprobs = response_dist(reference(tokens)[0], args.temperature).log_prob(responses)
+    has_eos = (responses == EOS).any(1)
+    scores = torch.where(has_eos, reward_model.score(tokens, mask), args.no_eos_score)
+    gold, well_formed = gold_scores(tokens, mask)
+    batch = {"tokens": tokens, "responses": responses, "mask": mask, "logprobs": dist.log_prob(responses)}
+    batch |= {"ref_logprobs": ref_logprobs, "values": values[:, PROMPT_LENGTH - 1 : -1] * mask, "scores": scores}
+    return batch | {"gold": gold, "well_formed": well_formed, "has_eos": has_eos.float(), "entropy": dist.entropy()}
+
+
+def ppo_update(agent, optimizer, mb, args):
+    """A minibatch step on minus L^CLIP + c1 L^VF (eq. (9) without its entropy bonus), over the masked tokens only."""
+    mask = mb["mask"]
+    logits, newvalues = agent(mb["tokens"])
+    dist = response_dist(logits, args.temperature)
+    # Masked before exp: the log-ratio at a PAD position is 0, whatever the old log-prob stored there.
+    logratio = (dist.log_prob(mb["responses"]) - mb["logprobs"]) * mask
+    ratio = logratio.exp()  # r_t(theta), paper eq. (6)
+    pg_loss = clipped_surrogate_loss(ratio, mb["advantages"], args.clip_coef, mask)
+    v_loss = value_loss(newvalues[:, PROMPT_LENGTH - 1 : -1], mb["values"], mb["returns"], args.clip_coef, True, mask)
+    loss = pg_loss + args.vf_coef * v_loss
+    optimizer.zero_grad()
+    loss.backward()
+    nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)  # core detail 11
+    optimizer.step()
+    # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[old, new].
+    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": masked_mean(dist.entropy(), mask)}
+    stats |= {"old_approx_kl": masked_mean(-logratio, mask), "approx_kl": masked_mean((ratio - 1) - logratio, mask)}
+    stats |= {"clipfrac": masked_mean(((ratio - 1.0).abs() > args.clip_coef).float(), mask), "loss": loss}
+    return {name: stat.detach() for name, stat in stats.items()}
+
+
+def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer):
+    """Stage 3: PPO-Clip, with the rewards of compute_rewards: the RM's score and the KL penalty to pi_SFT."""
+    reference = sft.requires_grad_(False)  # pi_SFT, frozen
+    agent = Agent(sft, reward_model.requires_grad_(False), args.value_model).requires_grad_(True)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)  # core detail 3
+    num_iterations = args.total_episodes // args.batch_size
+    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
+    kl_coef = checkpoint["kl_coef"] if checkpoint else args.kl_coef
+    start_iteration = checkpoint["iteration"] + 1 if checkpoint else 1
+    torch.manual_seed(args.seed + 2)
+    if checkpoint:
+        agent.load_state_dict(checkpoint["agent"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        torch.set_rng_state(checkpoint["torch_rng_state"])
+        print(f"resuming {run_dir} at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})")
+    update = torch.compile(ppo_update) if args.compile else ppo_update
+    table = "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items())
+    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+    start_time = time.time()
+
+    # ALGORITHM 1, with prompts for actors: for iteration = 1, 2, ...
+    for iteration in range(start_iteration, num_iterations + 1):
+        # ROLLOUT: a response to each prompt from pi_theta_old, scored by the reward model.
+        batch = rollout(agent, reference, reward_model, args.batch_size, args)
+        global_step = iteration * args.batch_size
+
+        # REWARDS AND ADVANTAGES: the KL penalty at every token and the score at the EOS, then GAE over tokens.
+        mask = batch["mask"]
+        rewards = compute_rewards(batch["scores"], batch["logprobs"], batch["ref_logprobs"], mask, kl_coef)
+        advantages, batch["returns"] = compute_gae(rewards, batch["values"], mask, args.gamma, args.gae_lambda)
+        # Whitened once over all the batch's tokens, as Ziegler et al.'s code does, not per minibatch (core detail 7).
+        mean = masked_mean(advantages, mask)
+        std = masked_mean((advantages - mean) ** 2, mask).sqrt()
+        batch["advantages"] = (advantages - mean) / (std + 1e-8) * mask
+
+        # UPDATE: K epochs of minibatch gradient descent, a new shuffle each epoch (core detail 6).
+        update_stats = []
+        for _ in range(args.update_epochs):
+            b_inds = torch.randperm(args.batch_size, device=device)
+            for start in range(0, args.batch_size, args.minibatch_size):
+                mb_inds = b_inds[start : start + args.minibatch_size]
+                update_stats.append(update(agent, optimizer, {k: v[mb_inds] for k, v in batch.items()}, args))
+
+        # LOGGING: the mean over every minibatch of the update, and what the rollout's responses show.
+        losses = {name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]}
+        returns = batch["returns"][mask.bool()]
+        losses["explained_variance"] = (1 - (returns - batch["values"][mask.bool()]).var() / returns.var()).item()
+        stats = evaluate(batch)
+        sps = (iteration - start_iteration + 1) * args.batch_size / (time.time() - start_time)
+        scalars = {f"losses/{name}": value for name, value in losses.items()} | stats
+        scalars |= {"rlhf/kl_coef": kl_coef, "charts/SPS": sps, "charts/episodic_length": stats["rlhf/response_length"]}
+        scalars |= {"charts/episodic_return": rewards.sum(1).mean().item(), "charts/learning_rate": args.learning_rate}
+        for name, value in scalars.items():
+            writer.add_scalar(name, value, global_step)
+        if args.adaptive_kl:
+            kl_coef = adapt_kl_coef(kl_coef, stats["rlhf/kl"], args.kl_target, args.batch_size, args.kl_horizon)
+        text = " | ".join(f"{name} {stats[f'rlhf/{name}']:+.2f}" for name in ("score", "gold_score", "kl"))
+        text += f" | beta {kl_coef:.3g} | SPS {sps:.0f}"
+        report("stage 3, PPO: iteration", iteration, num_iterations, start_time, text, start_iteration - 1)
+
+        # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
+        if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
+            raise Diverged(f"loss or weights not finite after iteration {iteration}; try a smaller --learning-rate")
+        if stop or iteration % args.save_every == 0 or iteration == num_iterations:
+            for tokens, score, gold in zip(batch["tokens"][:3].tolist(), batch["scores"], batch["gold"], strict=False):
+                print(f"  score {score:+.2f} | gold {gold:+3.0f} |", *(WORDS[t] for t in tokens if t not in (PAD, BOS)))
+            writer.flush()  # the curve on disk reaches at least the checkpoint's step
+            state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "kl_coef": kl_coef}
+            state |= {"reference": reference.state_dict(), "reward_model": reward_model.state_dict()}
+            state |= {"global_step": global_step, "iteration": iteration, "torch_rng_state": torch.get_rng_state()}
+            save_checkpoint(checkpoint_path, "ppo", args, **state)
+        if stop:
+            raise Stopped(f"stopped at step {global_step:,}; continue with --resume {checkpoint_path}")
+    print(f"saved {checkpoint_path}")
+    return agent, run_dir
+
+
+def train(args):
+    """Stages 1 to 3, each skipped where a checkpoint holds it; returns (agent, run_dir) or raises Stopped, Diverged."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    checkpoint = load_checkpoint(args.resume) if args.resume else None
+    if checkpoint:  # the run of the checkpoint, with how to run it (RUNTIME_FIELDS) from the command line
+        runtime = {k: getattr(args, k) for k in RUNTIME_FIELDS}
+        args = Args(**{**checkpoint["args"], **runtime, "run_dir": os.path.dirname(os.path.abspath(args.resume))})
+    run_dir = args.run_dir or f"runs/reviews__{args.exp_name}__{args.seed}__{int(time.time())}"
+    device = torch.device("cpu" if args.device == "auto" else args.device)
+    previous_threads = torch.get_num_threads()
+    stop = []
+    # Ctrl-C and SIGTERM (say, a job scheduler's stop) only set a flag, which each stage checks after each step.
+    handlers = {sig: signal.signal(sig, lambda *_: stop.append(True)) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        torch.set_num_threads(args.torch_threads)
+        if checkpoint:  # a resumed stage 3: stages 1 and 2 are in its checkpoint
+            sft = new_model(args, device, checkpoint["reference"])
+            reward_model = new_model(args, device, checkpoint["reward_model"])
+        else:
+            os.makedirs(run_dir, exist_ok=True)
+            sft = train_sft(args, run_dir, device, stop)
+            reward_model = train_reward_model(args, sft, run_dir, device, stop)
+        # On --resume, purge_step drops what the run logged after its checkpoint: its curves go on without a fold.
+        with SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1 if checkpoint else None) as writer:
+            return train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer)
+    finally:  # on every exit, errors included, the process is left as it was
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+        torch.set_num_threads(previous_threads)
+
+
+# EVALUATION
+def evaluate(batch):
+    """What a batch of responses shows: its scores, its KL to pi_SFT (per response, in nats), and its form."""
+    mask = batch["mask"]
+    stats = {"score": batch["scores"].mean(), "gold_score": batch["gold"].mean()}
+    stats["kl"] = ((batch["logprobs"] - batch["ref_logprobs"]) * mask).sum(1).mean()
+    stats |= {"entropy": masked_mean(batch["entropy"], mask), "well_formed": batch["well_formed"].mean()}
+    stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
+    return {f"rlhf/{name}": value.item() for name, value in stats.items()}
+
+
+# MACHINERY: checkpoints and argument checks
+RUNTIME_FIELDS = ("device", "compile", "torch_threads", "save_every", "resume")
+FORMAT = "ppo-checkpoint-v1"
+
+
+def save_checkpoint(path, stage, args, **state):
+    # Tensors, numbers and strings, loadable with torch.load(weights_only=True); written, then renamed, atomically.
+    torch.save({"format": FORMAT, "script": SCRIPT, "stage": stage, "args": asdict(args), **state}, f"{path}.tmp")
+    os.replace(f"{path}.tmp", path)
+
+
+def load_checkpoint(path, stage="ppo"):
+    """A checkpoint of this script's `stage`, loaded on the CPU; else a ValueError with a one-line reason."""
+    if not os.path.isfile(path):
+        raise ValueError(f"checkpoint {path!r} does not exist")
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:
+        raise ValueError(f"cannot read checkpoint {path!r}: it is corrupt or not a checkpoint") from None
+    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, SCRIPT):
+        raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
+    if checkpoint.get("stage") != stage:
+        raise ValueError(f"{path!r} is a checkpoint of the {checkpoint.get('stage')} stage, not of the {stage} stage")
+    return checkpoint
+
+
+# Every number must be positive, except these, which have ranges of their own.
+RANGES = {"seed": (-math.inf, math.inf), "no_eos_score": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
+RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "response_length": (1, BLOCK_SIZE - PROMPT_LENGTH)}
+
+
+def check_args(args):
+    """Reject bad input before anything heavy loads, with a one-line reason (a ValueError)."""
+    flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
+    for name, value in asdict(args).items():
+        low, high = RANGES.get(name, (0, math.inf))
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            continue
+        if not math.isfinite(value):
+            raise ValueError(f"{flag(name)} must be a finite number, got {value}")
+        if name not in RANGES and value <= 0:
+            raise ValueError(f"{flag(name)} must be positive, got {value}")
+        if not low <= value <= high:
+            raise ValueError(f"{flag(name)} must be in [{low}, {high}], got {value}")
+    for name, whole in (("n_head", "d_model"), ("minibatch_size", "batch_size")):
+        if getattr(args, whole) % getattr(args, name):
+            raise ValueError(f"{flag(name)} {getattr(args, name)} does not divide {flag(whole)} {getattr(args, whole)}")
+    if args.resume is None and args.total_episodes < args.batch_size:
+        raise ValueError(f"--total-episodes {args.total_episodes} is less than one batch of {args.batch_size}")
+    if args.device not in ("auto", "cpu") and not (args.device.startswith("cuda") and torch.cuda.is_available()):
+        raise ValueError(f"--device {args.device} is not available here; use auto or cpu")
+    existing = os.path.abspath(args.run_dir or ".")
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing) or not os.access(existing, os.W_OK):
+        raise ValueError(f"--run-dir {args.run_dir} cannot be created or written: {existing} is a file or read-only")
+    if args.resume is None and args.run_dir and os.path.isdir(args.run_dir) and os.listdir(args.run_dir):
+        path = os.path.join(args.run_dir, "checkpoint.pt")
+        raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {path}")
+    for name, stage in (("sft_checkpoint", "sft"), ("reward_model_checkpoint", "reward_model")):
+        trained = load_checkpoint(getattr(args, name), stage)["args"] if getattr(args, name) else asdict(args)
+        if any(trained[field] != getattr(args, field) for field in ("d_model", "n_layer", "n_head")):
+            raise ValueError(f"{flag(name)} holds a network of another --d-model, --n-layer or --n-head")
+    if args.resume is not None:
+        load_checkpoint(args.resume)
+
+
+def main():
+    import tyro
+
+    args = tyro.cli(Args)
+    try:
+        check_args(args)
+    except ValueError as e:
+        print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts
+        sys.exit(2)
+    try:
+        train(args)
+    except Stopped as e:
+        print(e, flush=True)
+        sys.exit(130)
+    except Diverged as e:
+        print(f"{SCRIPT}: error: {e}", file=sys.stderr)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,326 @@
+"""ppo_rlhf.py: its math against plain loops and hand computations, its language, and its real command line on a tiny
+budget (stop and resume, determinism, cached stages, bad input)."""
+
+import dataclasses
+import math
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli, signal_at_checkpoint, tb_scalars
+
+SCRIPT = "ppo_rlhf.py"
+rlhf = load_script(SCRIPT)
+TINY_FLAGS = TINY[SCRIPT]["tiny"]
+
+
+def tiny_args(tmp_path, name="run", **overrides):
+    """The Args of TINY's run, for train() in this process."""
+    flags = dict(zip(TINY_FLAGS[::2], TINY_FLAGS[1::2], strict=True))
+    types = {f.name: type(getattr(rlhf.Args(), f.name)) for f in dataclasses.fields(rlhf.Args)}
+    values = {k[2:].replace("-", "_"): v for k, v in flags.items()}
+    values = {k: types[k](v) for k, v in values.items()}
+    return rlhf.Args(**{**values, "torch_threads": 1, "run_dir": str(tmp_path / name), **overrides})
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """One tiny run of all three stages in this process, shared by the tests that only read it."""
+    path = tmp_path_factory.mktemp("rlhf")
+    agent, run_dir = rlhf.train(tiny_args(path))
+    return agent, path / "run"
+
+
+# THE MATH, against plain loops
+def reference_rewards(scores, logprobs, ref_logprobs, mask, kl_coef):
+    B, L = logprobs.shape
+    rewards = np.zeros((B, L))
+    for i in range(B):
+        last = max(t for t in range(L) if mask[i, t])
+        for t in range(last + 1):
+            rewards[i, t] = -kl_coef * (logprobs[i, t] - ref_logprobs[i, t])
+        rewards[i, last] += scores[i]
+    return rewards
+
+
+def reference_gae(rewards, values, mask, gamma, lam):
+    """A forward double loop: A_t = sum_l (gamma lam)^l delta_{t+l} up to the end of the response, V = 0 after it."""
+    B, L = rewards.shape
+    adv = np.zeros((B, L))
+    for i in range(B):
+        end = max(t for t in range(L) if mask[i, t])
+        for t in range(end + 1):
+            for k in range(t, end + 1):
+                next_value = values[i, k + 1] if k < end else 0.0
+                adv[i, t] += (gamma * lam) ** (k - t) * (rewards[i, k] + gamma * next_value - values[i, k])
+    return adv
+
+
+def masks_with_a_row_without_eos(rng, B, L):
+    lengths = rng.integers(1, L + 1, size=B)
+    lengths[0] = L  # a response cut at the length limit, without an EOS: every position counts
+    return (np.arange(L)[None] < lengths[:, None]).astype(np.float64)
+
+
+def t64(*arrays):
+    return [torch.tensor(a, dtype=torch.float64) for a in arrays]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_rewards_match_a_plain_loop(seed):
+    rng = np.random.default_rng(seed)
+    B, L = 4, 7
+    mask = masks_with_a_row_without_eos(rng, B, L)
+    scores, logprobs, ref_logprobs = rng.normal(size=B), -rng.random((B, L)), -rng.random((B, L))
+    expected = reference_rewards(scores, logprobs, ref_logprobs, mask, 0.3)
+    rewards = rlhf.compute_rewards(*t64(scores, logprobs, ref_logprobs, mask), 0.3)
+    np.testing.assert_allclose(rewards.numpy(), expected, atol=1e-12)
+
+
+@pytest.mark.parametrize("gamma,lam", [(1.0, 0.95), (0.9, 0.5), (1.0, 1.0), (0.5, 0.0)])
+def test_gae_matches_a_double_loop(gamma, lam):
+    rng = np.random.default_rng(7)
+    B, L = 5, 9
+    mask = masks_with_a_row_without_eos(rng, B, L)
+    rewards, values = rng.normal(size=(2, B, L)) * mask  # what the script passes: nothing after the end
+    values_after_the_end = values + 100.0 * (1 - mask)  # must be ignored
+    expected = reference_gae(rewards, values, mask, gamma, lam)
+    adv, ret = rlhf.compute_gae(*t64(rewards, values_after_the_end, mask), gamma, lam)
+    np.testing.assert_allclose(adv.numpy(), expected, atol=1e-9)
+    np.testing.assert_allclose(ret.numpy(), (expected + values) * mask, atol=1e-9)
+
+
+def test_gae_with_one_terminal_score_and_no_value_is_the_score_to_go():
+    # gamma = lambda = 1, V = 0, and only the score at the EOS: every token's advantage is that score.
+    mask = torch.tensor([[1.0, 1.0, 1.0, 0.0]])
+    rewards = rlhf.compute_rewards(torch.tensor([2.5]), torch.zeros(1, 4), torch.zeros(1, 4), mask, 0.1)
+    adv, _ = rlhf.compute_gae(rewards, torch.zeros(1, 4), mask, 1.0, 1.0)
+    assert adv.tolist() == [[2.5, 2.5, 2.5, 0.0]]
+
+
+def test_kl_controller_at_its_clip_bounds():
+    # e = clip(KL / target - 1, -0.2, 0.2); beta <- beta (1 + e n / horizon).
+    assert rlhf.adapt_kl_coef(0.1, 100.0, 6.0, 64, 1000) == pytest.approx(0.1 * (1 + 0.2 * 0.064))
+    assert rlhf.adapt_kl_coef(0.1, 7.2, 6.0, 64, 1000) == pytest.approx(0.1 * (1 + 0.2 * 0.064))  # exactly at +0.2
+    assert rlhf.adapt_kl_coef(0.1, 0.0, 6.0, 64, 1000) == pytest.approx(0.1 * (1 - 0.2 * 0.064))
+    assert rlhf.adapt_kl_coef(0.1, 6.6, 6.0, 64, 1000) == pytest.approx(0.1 * (1 + 0.1 * 0.064))  # inside: e = 0.1
+    assert rlhf.adapt_kl_coef(0.1, 6.0, 6.0, 64, 1000) == pytest.approx(0.1)
+    assert rlhf.adapt_kl_coef(0.0, 100.0, 6.0, 64, 1000) == 0.0  # beta = 0 stays 0: the rule is multiplicative
+
+
+def test_bradley_terry_loss_by_hand():
+    # -log sigmoid(d) = log(1 + e^-d): for d = 1, 0 and -2, averaged.
+    chosen, rejected = torch.tensor([2.0, 0.5, -1.0]), torch.tensor([1.0, 0.5, 1.0])
+    by_hand = (math.log(1 + math.exp(-1)) + math.log(2) + math.log(1 + math.exp(2))) / 3
+    assert rlhf.preference_loss(chosen, rejected).item() == pytest.approx(by_hand, rel=1e-6)
+
+
+def test_losses_are_means_over_the_masked_tokens_only():
+    ratio, adv, mask = torch.tensor([1.5, 0.5, 9.0]), torch.tensor([1.0, 1.0, 5.0]), torch.tensor([1.0, 1.0, 0.0])
+    assert rlhf.clipped_surrogate_loss(ratio, adv, 0.2, mask).item() == pytest.approx(-(1.2 + 0.5) / 2)
+    new, old, ret = torch.tensor([1.0, 3.0, 50.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])
+    assert rlhf.value_loss(new, old, ret, 10.0, True, mask).item() == pytest.approx((1.0 + 4.0) / 2)
+
+
+# THE LANGUAGE
+def test_the_grammar_is_well_formed_and_the_gold_reward_is_the_valence_sum():
+    import random
+
+    rng = random.Random(0)
+    assert all(rlhf.parse_review(" ".join(rlhf.sample_review(rng))) is not None for _ in range(500))
+    assert rlhf.parse_review("the film was very superb and the plot was not awful and the cast was dull <eos>") == 8
+    for broken in ["the film was good", "the film was good and <eos>", "the film was very very good <eos>", "<eos>"]:
+        assert rlhf.parse_review(broken) is None, broken
+    assert len(set(rlhf.WORDS)) == len(rlhf.WORDS) and len({rlhf.PAD, rlhf.BOS, rlhf.EOS}) == 3
+
+
+def test_generation_masks_and_pads_after_the_first_eos():
+    torch.manual_seed(0)
+    lm = rlhf.TinyLM(16, 1, 2)
+    tokens, mask = rlhf.generate(lm, 32, 10, 1.0)
+    responses = tokens[:, rlhf.PROMPT_LENGTH :]
+    assert tokens.shape == (32, rlhf.PROMPT_LENGTH + 10) and mask.shape == (32, 10)
+    for row, m in zip(responses.tolist(), mask.tolist(), strict=True):
+        end = row.index(rlhf.EOS) + 1 if rlhf.EOS in row else len(row)
+        assert m == [1.0] * end + [0.0] * (len(row) - end)
+        assert all(t == rlhf.PAD for t in row[end:])
+
+
+# THE PPO UPDATE
+def a_batch(value_model="reward-model", seed=0):
+    torch.manual_seed(seed)
+    sft = rlhf.TinyLM(16, 1, 2)
+    reward_model = rlhf.TinyLM(16, 1, 2)
+    agent = rlhf.Agent(sft, reward_model, value_model)
+    args = rlhf.Args(response_length=12)
+    batch = rlhf.rollout(agent, sft, reward_model, 16, args)
+    rewards = rlhf.compute_rewards(batch["scores"], batch["logprobs"], batch["ref_logprobs"], batch["mask"], 0.05)
+    batch["advantages"], batch["returns"] = rlhf.compute_gae(rewards, batch["values"], batch["mask"], 1.0, 0.95)
+    return agent, batch, args
+
+
+@pytest.mark.parametrize("value_model", ["reward-model", "policy-head"])
+def test_ratio_is_one_and_approx_kl_zero_on_the_first_minibatch(value_model):
+    agent, batch, args = a_batch(value_model)
+    mb = {k: v[:8] for k, v in batch.items()}
+    logits, _ = agent(mb["tokens"])
+    newlogprobs = rlhf.response_dist(logits, args.temperature).log_prob(mb["responses"])
+    ratio = ((newlogprobs - mb["logprobs"]) * mb["mask"]).exp()
+    torch.testing.assert_close(ratio, torch.ones_like(ratio), atol=1e-5, rtol=0)
+    stats = rlhf.ppo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)
+    assert abs(stats["approx_kl"].item()) < 1e-8 and abs(stats["old_approx_kl"].item()) < 1e-5
+    assert stats["clipfrac"].item() == 0.0
+
+
+def gradients(agent, mb, args):
+    rlhf.ppo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)  # lr 0: the weights stay
+    return {name: p.grad.clone() for name, p in agent.named_parameters() if p.grad is not None}
+
+
+def test_masked_positions_change_no_gradient():
+    agent, batch, args = a_batch()
+    mask = batch["mask"]
+    assert (mask == 0).any(), "the batch has positions after an EOS"
+    before = gradients(agent, batch, args)
+    garbage = dict(batch)
+    after_the_end = mask == 0
+    garbage["responses"] = batch["responses"].masked_fill(after_the_end, rlhf.TOKEN["superb"])
+    garbage["tokens"] = torch.cat([batch["tokens"][:, : rlhf.PROMPT_LENGTH], garbage["responses"]], 1)
+    for key in ("logprobs", "values", "returns", "advantages"):
+        garbage[key] = torch.where(after_the_end, torch.full_like(batch[key], 1e4), batch[key])
+    after = gradients(agent, garbage, args)
+    assert before.keys() == after.keys() and before
+    for name in before:
+        torch.testing.assert_close(before[name], after[name], msg=name)
+
+
+# THE COMMAND LINE
+def test_tiny_run_logs_and_checkpoints_each_stage(tiny_run, tmp_path):
+    _, run_dir = tiny_run
+    for name, stage in [("sft.pt", "sft"), ("reward_model.pt", "reward_model"), ("checkpoint.pt", "ppo")]:
+        checkpoint = torch.load(run_dir / name, weights_only=True)
+        assert checkpoint["format"] == "ppo-checkpoint-v1" and checkpoint["stage"] == stage
+    checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert checkpoint["global_step"] == 64 and checkpoint["iteration"] == 4 and checkpoint["optimizer"]["state"]
+    scalars = tb_scalars(run_dir)
+    rlhf_names = ["score", "gold_score", "kl", "kl_coef", "entropy", "response_length", "eos_fraction"]
+    losses = ["policy_loss", "value_loss", "entropy", "approx_kl", "old_approx_kl", "clipfrac", "explained_variance"]
+    expected = {f"rlhf/{n}" for n in rlhf_names} | {f"losses/{n}" for n in losses}
+    assert expected | {"charts/episodic_return", "charts/SPS"} <= set(scalars)
+    assert [step for step, _ in scalars["charts/SPS"]] == [16, 32, 48, 64]
+    assert not list(run_dir.glob("*.tmp"))
+
+
+def test_train_restores_signal_handlers_and_threads_even_when_it_fails(tmp_path, monkeypatch):
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    threads = torch.get_num_threads()
+    monkeypatch.setattr(rlhf, "clipped_surrogate_loss", lambda *a, **k: torch.tensor(float("nan"), requires_grad=True))
+    with pytest.raises(rlhf.Diverged, match="not finite after iteration 1; try a smaller --learning-rate"):
+        rlhf.train(tiny_args(tmp_path, torch_threads=threads + 1))
+    assert {sig: signal.getsignal(sig) for sig in handlers} == handlers and torch.get_num_threads() == threads
+
+
+def test_same_seed_same_run_and_cached_stages_change_nothing(tiny_run, tmp_path):
+    agent, run_dir = tiny_run
+    again, _ = rlhf.train(tiny_args(tmp_path, "again"))
+    stages = {"sft_checkpoint": str(run_dir / "sft.pt"), "reward_model_checkpoint": str(run_dir / "reward_model.pt")}
+    cached, _ = rlhf.train(tiny_args(tmp_path, "cached", **stages))
+    other, _ = rlhf.train(tiny_args(tmp_path, "other", seed=2))
+    for name, weight in agent.state_dict().items():
+        assert torch.equal(weight, again.state_dict()[name]), name
+        assert torch.equal(weight, cached.state_dict()[name]), name
+    assert not torch.equal(agent.state_dict()["policy.tok_emb.weight"], other.state_dict()["policy.tok_emb.weight"])
+    assert not (tmp_path / "cached" / "sft.pt").exists(), "a cached stage is not run again"
+
+
+def test_ctrl_c_saves_and_resume_continues_the_curve(tmp_path):
+    run_dir = tmp_path / "run"
+    flags = [*TINY_FLAGS, "--total-episodes", "640", "--save-every", "1", "--run-dir", run_dir, *ONE_THREAD]
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / SCRIPT), *map(str, flags)],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    out, err = signal_at_checkpoint(proc, run_dir / "checkpoint.pt", signal.SIGINT, wait=120)
+    assert proc.returncode == 130 and "Traceback" not in err and "--resume" in out, (out, err)
+    stopped_at = torch.load(run_dir / "checkpoint.pt", weights_only=True)["global_step"]
+    assert 0 < stopped_at < 640
+    resumed = run_cli(SCRIPT, "--resume", run_dir / "checkpoint.pt", cwd=tmp_path)
+    assert f"at step {stopped_at:,}" in resumed.stdout
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["global_step"] == 640
+    assert [step for step, _ in tb_scalars(run_dir)["charts/SPS"]] == list(range(16, 641, 16))
+
+
+def test_divergence_is_one_line_and_exit_1(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(rlhf, "clipped_surrogate_loss", lambda *a, **k: torch.tensor(float("nan"), requires_grad=True))
+    monkeypatch.setattr(sys, "argv", [SCRIPT, *TINY_FLAGS, "--run-dir", str(tmp_path / "run"), *ONE_THREAD])
+    with pytest.raises(SystemExit) as stopped:
+        rlhf.main()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert stopped.value.code == 1 and len(err) == 1 and "not finite after iteration 1" in err[0], err
+
+
+def bad_input_files(tmp_path):
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "corrupt.pt").write_bytes(b"\x80\x02not a checkpoint")
+    (tmp_path / "oldrun").mkdir()
+    (tmp_path / "oldrun" / "sft.pt").write_bytes(b"")
+    torch.save({"format": "ppo-checkpoint-v1", "script": "ppo_continuous.py"}, tmp_path / "foreign.pt")
+    small = rlhf.TinyLM(16, 1, 2)
+    args = rlhf.Args(d_model=16, n_layer=1, n_head=2)
+    rlhf.save_checkpoint(str(tmp_path / "sft.pt"), "sft", args, model=small.state_dict())
+
+
+BAD_INPUTS = [
+    (["--learning-rate", "nan"], "--learning-rate must be a finite number, got nan"),
+    (["--kl-coef", "inf"], "--kl-coef must be a finite number"),
+    (["--kl-coef", "-0.1"], "--kl-coef must be in [0, inf]"),
+    (["--gamma", "1.5"], "--gamma must be in [0, 1]"),
+    (["--temperature", "0"], "--temperature must be positive"),
+    (["--total-episodes", "0"], "--total-episodes must be positive"),
+    (["--total-episodes", "32"], "less than one batch of 64"),
+    (["--minibatch-size", "48"], "--minibatch-size 48 does not divide --batch-size 64"),
+    (["--n-head", "3"], "--n-head 3 does not divide --d-model 64"),
+    (["--response-length", "30"], "--response-length must be in [1, 29]"),
+    (["--value-model", "both"], "invalid choice"),
+    (["--device", "tpu"], "--device tpu is not available"),
+    (["--run-dir", "afile"], "is a file"),
+    (["--run-dir", "afile/run"], "cannot be created or written"),
+    (["--run-dir", "oldrun"], "already holds a run: continue it with --resume oldrun/checkpoint.pt"),
+    (["--resume", "missing.pt"], "does not exist"),
+    (["--resume", "corrupt.pt"], "corrupt"),
+    (["--resume", "foreign.pt"], "not a checkpoint written by ppo_rlhf.py"),
+    (["--resume", "sft.pt"], "a checkpoint of the sft stage, not of the ppo stage"),
+    (["--reward-model-checkpoint", "sft.pt"], "not of the reward_model stage"),
+    (["--sft-checkpoint", "sft.pt"], "--sft-checkpoint holds a network of another --d-model"),
+]
+
+
+@pytest.mark.parametrize("args,message", BAD_INPUTS, ids=[m for _, m in BAD_INPUTS])
+def test_bad_input_is_one_line_before_anything_starts(tmp_path, args, message, monkeypatch, capsys):
+    bad_input_files(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [SCRIPT, *args])
+    monkeypatch.setattr(rlhf, "train", lambda args: pytest.fail("training started"))
+    with pytest.raises(SystemExit) as stopped:
+        rlhf.main()
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert stopped.value.code == 2, err
+    if message != "invalid choice":  # tyro's own message for a choice it does not know is a box of lines
+        assert len(lines) == 1 and "error:" in lines[0] and message in lines[0], err
+    assert message in err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_bad_flag_from_the_shell_is_one_line_and_exit_2(tmp_path):
+    proc = run_cli(SCRIPT, "--gamma", "nan", cwd=tmp_path, check=False)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "--gamma must be a finite number" in lines[0], proc.stderr
+    assert not (tmp_path / "runs").exists()
