@@ -38,34 +38,11 @@ TINY = {
     # tests/test_rlhf.py runs its command line on this tiny budget: 4 PPO iterations of 16 responses.
     "ppo_rlhf.py": {
         "no_env": "ppo_rlhf.py has no gymnasium env, episodes or videos: tests/test_rlhf.py checks its command line",
-        "tiny": [
-            "--d-model",
-            "16",
-            "--n-layer",
-            "1",
-            "--n-head",
-            "2",
-            "--response-length",
-            "16",
-            "--sft-steps",
-            "60",
-            "--sft-learning-rate",
-            "0.01",
-            "--rm-pairs",
-            "128",
-            "--rm-epochs",
-            "1",
-            "--rm-batch-size",
-            "32",
-            "--total-episodes",
-            "64",
-            "--batch-size",
-            "16",
-            "--minibatch-size",
-            "8",
-            "--update-epochs",
-            "2",
-        ],
+        "tiny": (
+            "--d-model 16 --n-layer 1 --n-head 2 --response-length 16 --sft-steps 60 --sft-learning-rate 0.01"
+            " --rm-pairs 128 --rm-epochs 1 --rm-batch-size 32 --total-episodes 64 --batch-size 16 --minibatch-size 8"
+            " --update-epochs 2"
+        ).split(),
     },
     "ppo_kl_penalty.py": {
         "env_id": "Hopper-v5",

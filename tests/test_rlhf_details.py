@@ -1,0 +1,113 @@
+"""ppo_rlhf.py's train(), as tests/test_details.py checks the other scripts': one tiny run in this process, with what
+stage 3 passes to its module-level math recorded, and each detail checked against what it implies, computed here
+from the saved models: the score at the EOS (a fixed penalty without one), the KL penalty to the frozen pi_SFT, and
+the mask that keeps the tokens after an EOS out of every loss."""
+
+import dataclasses
+
+import pytest
+import torch
+from conftest import TINY, load_script
+
+rlhf = load_script("ppo_rlhf.py")
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    flags = dict(zip(TINY["ppo_rlhf.py"]["tiny"][::2], TINY["ppo_rlhf.py"]["tiny"][1::2], strict=True))
+    types = {f.name: type(getattr(rlhf.Args(), f.name)) for f in dataclasses.fields(rlhf.Args)}
+    values = {name[2:].replace("-", "_"): value for name, value in flags.items()}
+    values = {name: types[name](value) for name, value in values.items()}
+    # Responses of at most 6 tokens, so that some never reach their EOS; a beta that a dropped coefficient would show.
+    values |= {"response_length": 6, "kl_coef": 0.3, "no_eos_score": -2.5}
+    run_dir = tmp_path_factory.mktemp("rlhf") / "run"
+    args = rlhf.Args(**values, torch_threads=1, run_dir=str(run_dir))
+    calls = {"rollout": [], "compute_rewards": [], "compute_gae": [], "clipped_surrogate_loss": [], "value_loss": []}
+    patch = pytest.MonkeyPatch()
+    for name, log in calls.items():
+        real = getattr(rlhf, name)
+
+        def wrapper(*a, real=real, log=log, **kw):
+            out = real(*a, **kw)
+            log.append({"args": [x.detach().clone() if torch.is_tensor(x) else x for x in a], "kwargs": kw, "out": out})
+            return out
+
+        patch.setattr(rlhf, name, wrapper)
+    try:
+        rlhf.train(args)
+    finally:
+        patch.undo()
+    checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    return args, calls, checkpoint
+
+
+def first_eos_mask(responses):
+    """1 on each response up to and including its first EOS, on all of it if it has none: a plain loop."""
+    mask = torch.zeros(responses.shape)
+    for i, row in enumerate(responses.tolist()):
+        for j, token in enumerate(row):
+            mask[i, j] = 1.0
+            if token == rlhf.EOS:
+                break
+    return mask
+
+
+def test_the_mask_ends_at_the_first_eos(recorded):
+    _, calls, _ = recorded
+    for call in calls["rollout"]:
+        batch = call["out"]
+        assert torch.equal(batch["mask"], first_eos_mask(batch["responses"]))
+    has_eos = torch.cat([(c["out"]["responses"] == rlhf.EOS).any(1) for c in calls["rollout"]])
+    assert has_eos.any() and not has_eos.all(), "the run needs responses with and without an EOS"
+
+
+def test_the_score_is_the_reward_models_at_the_eos_and_a_fixed_penalty_without_one(recorded):
+    args, calls, checkpoint = recorded
+    reward_model = rlhf.new_model(args, "cpu", checkpoint["reward_model"])
+    for rollout, rewards in zip(calls["rollout"], calls["compute_rewards"], strict=True):
+        batch = rollout["out"]
+        scores = rewards["args"][0]
+        has_eos = (batch["responses"] == rlhf.EOS).any(1)
+        assert torch.all(scores[~has_eos] == args.no_eos_score)
+        with torch.no_grad():
+            at_eos = reward_model(batch["tokens"])[1]
+        eos_position = rlhf.PROMPT_LENGTH + (batch["responses"] == rlhf.EOS).int().argmax(1)
+        expected = at_eos[torch.arange(len(scores)), eos_position]
+        torch.testing.assert_close(scores[has_eos], expected[has_eos])
+
+
+def test_the_kl_penalty_is_to_the_frozen_sft_policy_with_beta(recorded):
+    args, calls, checkpoint = recorded
+    reference = rlhf.new_model(args, "cpu", checkpoint["reference"])
+    for rollout, rewards in zip(calls["rollout"], calls["compute_rewards"], strict=True):
+        batch = rollout["out"]
+        _, logprobs, ref_logprobs, mask, kl_coef = rewards["args"]
+        assert kl_coef == args.kl_coef
+        assert torch.equal(mask, batch["mask"])
+        with torch.no_grad():
+            logits = reference(batch["tokens"])[0][:, rlhf.PROMPT_LENGTH - 1 : -1] / args.temperature
+        expected = logits.log_softmax(-1).gather(-1, batch["responses"][..., None]).squeeze(-1)
+        torch.testing.assert_close(ref_logprobs, expected)
+    last = calls["compute_rewards"][-1]["args"]
+    assert not torch.allclose(last[1], last[2]), "after some updates, pi_theta is not pi_SFT"
+
+
+def test_gae_gets_these_rewards_and_the_mask(recorded):
+    _, calls, _ = recorded
+    for rewards, gae in zip(calls["compute_rewards"], calls["compute_gae"], strict=True):
+        assert torch.equal(gae["args"][0], rewards["out"])
+        assert torch.equal(gae["args"][2], rewards["args"][3])
+
+
+def test_every_loss_reads_only_the_masked_tokens(recorded):
+    _, calls, _ = recorded
+    for name in ("clipped_surrogate_loss", "value_loss"):
+        assert calls[name], name
+        for call in calls[name]:
+            mask = call["args"][-1] if len(call["args"]) in (4, 6) else call["kwargs"].get("mask")
+            assert mask is not None and torch.is_tensor(mask), f"{name} was called without the mask"
+            assert (mask == 0).any() and (mask == 1).any()
+    for call in calls["clipped_surrogate_loss"]:
+        advantages = call["args"][1]
+        mask = call["args"][3]
+        assert torch.all(advantages[mask == 0] == 0), "the advantages of tokens after an EOS are zero"
