@@ -38,7 +38,8 @@ CLIP = scripts_with("clipped_surrogate_loss")
 TIME_LIMIT = 20
 # One outlier in env 0's observation and one in its reward, late enough (after 200 samples) that the normalized
 # value of each exceeds 10 (at most sqrt(n - 1) standard deviations from the mean of n samples).
-OBS_SPIKE_STEP, REWARD_SPIKE_STEP = 100, 90
+OBS_SPIKE_STEP = 100
+REWARD_SPIKE_STEP = 90
 
 
 def test_every_script_is_recorded():
@@ -65,15 +66,26 @@ def grads(loss, module):
 
 class Record:
     def __init__(self, script, module):
-        self.script, self.module, self.phase = script, module, "train"
-        self.agents, self.rollout, self.minibatches, self.gae, self.calls = [], [], [], [], {}
-        self.optimizers, self.steps, self.clips, self.perms = [], [], [], []
-        self.env_inits, self.env_reset, self.env_steps = [], [], []
+        self.script = script
+        self.module = module
+        self.phase = "train"  # then "eval", for Atari's evaluation
+        self.calls = {}  # module function -> its calls
+        self.agents = []
+        self.rollout = []  # the Agent's calls that sampled an action
+        self.minibatches = []  # its calls that evaluated the batch's actions
+        self.optimizers = []
+        self.steps = []  # Adam's steps
+        self.clips = []
+        self.perms = []
+        self.env_inits = []
+        self.env_reset = []
+        self.env_steps = []
 
     def wrap(self, name):
         """module.<name>, recording its bound arguments, its output, the gradient of a loss, and for compute_gae the
         agent as it is then: the policy that collected the rollout."""
-        fn, log = getattr(self.module, name), self.calls.setdefault(name, [])
+        fn = getattr(self.module, name)
+        log = self.calls.setdefault(name, [])
         signature = inspect.signature(fn)
 
         def wrapper(*args, **kwargs):
@@ -217,7 +229,9 @@ def install(mp, rec):
                 return out
 
         mp.setattr(gym.vector, "SyncVectorEnv", RecordedSyncVectorEnv)
-        make_env, created, Outliers = module.make_env, [], outliers_wrapper()
+        make_env = module.make_env
+        created = []
+        Outliers = outliers_wrapper()
 
         def short_make_env(env_id, *args, **kwargs):
             env = Outliers(gym.wrappers.TimeLimit(make_env(env_id, *args, **kwargs), TIME_LIMIT), first=not created)
@@ -266,17 +280,22 @@ def outliers_wrapper():
 
         def __init__(self, env, first):
             super().__init__(env)
-            self.first, self.steps, self.obs_spiked, self.reward_spiked = first, 0, False, False
+            self.first = first
+            self.steps = 0
+            self.obs_spiked = False
+            self.reward_spiked = False
 
         def step(self, action):
             obs, reward, term, trunc, info = self.env.step(action)
             self.steps += 1
             if self.first and not (term or trunc):
                 if self.steps >= OBS_SPIKE_STEP and not self.obs_spiked:
-                    obs, self.obs_spiked = obs.copy(), True
+                    obs = obs.copy()
                     obs[0] += 1e3
+                    self.obs_spiked = True
                 if self.steps >= REWARD_SPIKE_STEP and not self.reward_spiked:
-                    reward, self.reward_spiked = reward + 1e3, True
+                    reward += 1e3
+                    self.reward_spiked = True
             return obs, reward, term, trunc, info
 
     return Outliers
@@ -297,7 +316,9 @@ def record_run(script, tmp_path):
     rec.scalars = tb_scalars(rec.run_dir)
     rec.checkpoint = torch.load(f"{rec.run_dir}/checkpoint.pt", weights_only=True)
     a = rec.args
-    rec.T, rec.N, rec.K = a.num_steps, a.num_envs, a.update_epochs
+    rec.T = a.num_steps
+    rec.N = a.num_envs
+    rec.K = a.update_epochs
     rec.B = rec.T * rec.N
     rec.M = rec.B // a.minibatch_size  # minibatches per epoch
     rec.S = rec.K * rec.M  # optimizer steps per iteration
@@ -326,7 +347,8 @@ def recorded(tmp_path_factory):
 def running_stats(batches):
     """RunningMeanStd's mean and var after these batches, in closed form: its prior is mean 0, var 1, count 1e-4."""
     x = np.concatenate([np.asarray(b, dtype=np.float64) for b in batches])
-    prior, n = 1e-4, len(x)
+    prior = 1e-4
+    n = len(x)
     total = prior + n
     mean = x.mean(0) * n / total
     var = (prior + x.var(0) * n + x.mean(0) ** 2 * prior * n / total) / total
@@ -380,7 +402,8 @@ def flat(x):
 def minibatches(rec):
     """For each optimizer step: (iteration, its flat batch indices) from the epoch's permutation, and what the
     update passed to the Agent, the losses and the optimizer."""
-    a, mb = rec.args, rec.args.minibatch_size
+    a = rec.args
+    mb = a.minibatch_size
     perms = [p for p in rec.perms if p.numel() == rec.B]
     pg = rec[policy_loss_name(rec)]
     vl = rec["value_loss"]
@@ -411,7 +434,8 @@ def test_truncated_episode_bootstraps_from_the_value_of_its_final_observation(sc
     cut = 0
     for i in range(1, rec.I + 1):
         it = iteration(rec, i)
-        agent, next_values = it["gae"]["agent"], it["gae"]["next_values"]
+        agent = it["gae"]["agent"]
+        next_values = it["gae"]["next_values"]
         for t in range(rec.T):
             g = (i - 1) * rec.T + t  # the step's index in the run
             step = it["env"][t]
@@ -601,7 +625,8 @@ def test_core10_the_gradient_is_that_of_eq9(script, recorded):
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_core11_global_gradient_norm_clipped_to_max_grad_norm(script, recorded):
     rec = recorded(script)
-    max_norm, clipped = rec.args.max_grad_norm, 0
+    max_norm = rec.args.max_grad_norm
+    clipped = 0
     assert len(rec.clips) == len(rec.steps)
     for clip in rec.clips:
         assert clip["max_norm"] == max_norm and clip["norm_type"] == 2
@@ -698,7 +723,8 @@ def test_continuous3_log_probs_sum_over_action_dimensions(script, recorded):
 @pytest.mark.parametrize("script", MUJOCO)
 def test_continuous4_separate_64x64_tanh_mlps(script, recorded):
     rec = recorded(script)
-    agent, x = rec.agent, torch.randn(5, rec.env_reset[0].shape[1])
+    agent = rec.agent
+    x = torch.randn(5, rec.env_reset[0].shape[1])
     for net, out in ((agent.critic, 1), (agent.actor_mean, rec.env_steps[0]["actions"].shape[1])):
         linear = [m for m in net.modules() if isinstance(m, torch.nn.Linear)]
         assert [tuple(m.weight.shape) for m in linear] == [(64, x.shape[1]), (64, 64), (out, 64)]
@@ -753,7 +779,9 @@ def test_continuous7_normalized_observations_clipped_to_10(script, recorded):
 def expected_rewards(rec, clip=True):
     """Each raw reward divided by the running std of the discounted return (no mean removed), which restarts at an
     episode's end, then clipped to [-10, 10]: [I T, N]."""
-    discounted, seen, out = np.zeros(rec.N), [], []
+    discounted = np.zeros(rec.N)
+    seen = []
+    out = []
     for s in rec.env_steps:
         discounted = discounted * rec.args.gamma + s["reward"]
         seen.append(discounted.copy())
@@ -770,7 +798,8 @@ def test_continuous8_rewards_scaled_by_the_std_of_the_discounted_return(script, 
     rewards = torch.cat([g["rewards"] for g in rec["compute_gae"]])
     torch.testing.assert_close(rewards, expected_rewards(rec), atol=1e-5, rtol=1e-5)
     # The logged return is the env's own: the sum of the raw rewards of each finished episode.
-    returns, episodes = np.zeros(rec.N), []
+    returns = np.zeros(rec.N)
+    episodes = []
     for s in rec.env_steps:
         returns += s["reward"]
         episodes += list(returns[s["term"] | s["trunc"]])
@@ -823,7 +852,8 @@ def test_atari2_each_step_is_4_frames(script, recorded):
 @pytest.mark.parametrize("script", ATARI)
 def test_atari3_a_lost_life_ends_the_episode_for_learning_not_the_game(script, recorded):
     rec = recorded(script)
-    frames, lost_lives = rec.env_reset[0][1], 0
+    frames = rec.env_reset[0][1]
+    lost_lives = 0
     for s in rec.env_steps:
         lost_lives += (s["term"] & (s["frame"] > frames)).sum()  # a termination, and the game's frames count on
         frames = s["frame"]
@@ -836,12 +866,17 @@ def test_atari3_a_lost_life_ends_the_episode_for_learning_not_the_game(script, r
 
 def games(rec):
     """The (global_step, score, length) of every game that ended: ALE's frame count restarts with a new game."""
-    frames, score, length, out = rec.env_reset[0][1], np.zeros(rec.N), np.zeros(rec.N), []
+    frames = rec.env_reset[0][1]
+    score = np.zeros(rec.N)
+    length = np.zeros(rec.N)
+    out = []
     for g, s in enumerate(rec.env_steps):
         score, length = score + s["reward"], length + 1
         over = (s["term"] | s["trunc"]) & (s["frame"] < frames)
         out += [((g + 1) * rec.N, score[n], length[n]) for n in np.flatnonzero(over)]
-        score[over], length[over], frames = 0.0, 0, s["frame"]
+        score[over] = 0.0
+        length[over] = 0
+        frames = s["frame"]
     return out
 
 
@@ -925,7 +960,10 @@ def test_kl_beta_adapts_after_each_update_to_the_exact_kl_of_the_batch(script, r
     # Paper §4: d = E[KL[pi_old, pi_new]] over the batch after the update; beta / 2 if d < d_targ / 1.5, x 2 if
     # d > 1.5 d_targ; the next update uses it.
     rec = recorded(script)
-    target, beta, betas, kls = rec.args.kl_target, rec.args.init_beta, [], []
+    target = rec.args.kl_target
+    beta = rec.args.init_beta
+    betas = []
+    kls = []
     snapshots = [g["agent"] for g in rec["compute_gae"]] + [rec.agent]
     for i in range(1, rec.I + 1):
         obs = flat(iteration(rec, i)["obs"])
