@@ -31,7 +31,7 @@ RUNS = {
 }
 COMMON = dict(num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, total_timesteps=256, torch_threads=1)
 MUJOCO = scripts_with("make_env")
-ATARI = scripts_with("make_envs")
+ATARI = scripts_with("game_over")
 KL = scripts_with("kl_penalty_loss")
 CLIP = scripts_with("clipped_surrogate_loss")
 # MuJoCo episodes cut at 20 steps: random Hopper falls (a termination) in about half of them.
