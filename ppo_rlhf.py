@@ -565,7 +565,8 @@ def check_args(args):
         existing = os.path.dirname(existing)
     if not os.path.isdir(existing) or not os.access(existing, os.W_OK):
         raise ValueError(f"--run-dir {args.run_dir} cannot be created or written: {existing} is a file or read-only")
-    if args.resume is None and args.run_dir and os.path.isdir(args.run_dir) and os.listdir(args.run_dir):
+    held = args.run_dir and os.path.isdir(args.run_dir) and os.listdir(args.run_dir)
+    if args.resume is None and held and any("tfevents" in f or f.endswith(".pt") for f in held):
         path = os.path.join(args.run_dir, "checkpoint.pt")
         raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {path}")
     for name, stage in (("sft_checkpoint", "sft"), ("reward_model_checkpoint", "reward_model")):
