@@ -81,12 +81,14 @@ def test_every_suite_is_a_valid_grid(suite):
     run.check_grid(jobs)
 
 
-def test_atari_suite_is_three_games_three_seeds_and_the_sb3_peer():
+def test_atari_suite_is_three_games_three_seeds_and_the_arms_of_issue_30():
     runs = {(job.variant, job.env_id.split("NoFrameskip")[0], job.seed) for job in run.make_grid("atari")}
     assert {(e, s) for v, e, s in runs if v == "ppo"} == {
         (e, s) for e in ("Pong", "Breakout", "BeamRider") for s in (1, 2, 3)
     }
-    assert {(e, s) for v, e, s in runs if v == "sb3"} == {("Pong", 1), ("Breakout", 1)}
+    for arm in ("vf0.5", "sb3"):  # where we trail the peer: Pong and Breakout, 3 seeds each
+        assert {(e, s) for v, e, s in runs if v == arm} == {(e, s) for e in ("Pong", "Breakout") for s in (1, 2, 3)}
+    assert run.SUITES["atari"].variants["vf0.5"] == ("ppo_atari.py", ["--compile", "--vf-coef", "0.5"])
     assert {job.total_timesteps for job in run.make_grid("atari")} == {1_000_000}
 
 
