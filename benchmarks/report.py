@@ -52,7 +52,12 @@ COLUMNS = {
     ],
 }
 # What each Atari variant is, for the table's headings.
-ATARI_NAMES = {"ppo": "ours", "sb3": "SB3 PPO (RL Zoo)", "default": "ours, before the issue-14 fixes"}
+ATARI_NAMES = {
+    "ppo": "ours",
+    "vf0.5": "ours, --vf-coef 0.5",
+    "sb3": "SB3 PPO (RL Zoo)",
+    "default": "ours, before the issue-14 fixes",
+}
 
 
 @dataclass
@@ -440,13 +445,31 @@ def tables(folder, runs, reference, results, level="##"):
             lines += [f"| {env} | {best_of[env]} |" for env in norm_envs]
         lines += ["", f"{level} Scores", ""]
     if kind == "atari":
-        return lines + atari_table(runs, reference, variants, results)
+        return lines + atari_table(runs, reference, variants, results) + atari_comparison(runs, variants)
     lines += score_table(runs, reference, COLUMNS[kind], variants, results)
     if (
         kind == "mujoco" and len(variants) > 1
     ):  # a suite that tests changes against a default: shortfalls, beta_collapse
         lines += comparison(runs, reference, variants)
     return lines
+
+
+def difference(scores, base_scores):
+    """The difference of the mean scores, scores minus base_scores, and its standard error over seeds,
+    sqrt(s1²/n1 + s2²/n2); None unless both sides have 2 or more seeds."""
+    if len(scores) < 2 or len(base_scores) < 2:
+        return None
+    d = statistics.mean(scores) - statistics.mean(base_scores)
+    return d, math.sqrt(statistics.variance(scores) / len(scores) + statistics.variance(base_scores) / len(base_scores))
+
+
+def fmt_difference(scores, base_scores):
+    """'+d ± se' from difference(), in bold where the difference exceeds 2 standard errors; '–' where it has none."""
+    diff = difference(scores, base_scores)
+    if diff is None:
+        return "–"
+    d, se = diff
+    return f"**{d:+,.1f} ± {se:,.1f}**" if abs(d) > 2 * se else f"{d:+,.1f} ± {se:,.1f}"
 
 
 def comparison(runs, reference, variants):
@@ -472,13 +495,7 @@ def comparison(runs, reference, variants):
         for env in envs:
             for v in [v for v in variants if v in by_env[env]]:
                 scores = [r.score for r in by_env[env][v]]
-                diff = "–"
-                if (env, v) != (envs[0], base) and len(scores) > 1 and len(base_scores) > 1:
-                    d = statistics.mean(scores) - statistics.mean(base_scores)
-                    se = math.sqrt(
-                        statistics.variance(scores) / len(scores) + statistics.variance(base_scores) / len(base_scores)
-                    )
-                    diff = f"**{d:+,.1f} ± {se:,.1f}**" if abs(d) > 2 * se else f"{d:+,.1f} ± {se:,.1f}"
+                diff = "–" if (env, v) == (envs[0], base) else fmt_difference(scores, base_scores)
                 reached = (
                     "–" if not paper else f"{'yes' if statistics.mean(scores) >= paper[0] else 'no'} ({fmt(paper[0])})"
                 )
@@ -527,6 +544,47 @@ def atari_table(runs, reference, variants, results):
         "- The paper's budget, 10M steps, on a GPU (not yet tested on one here):"
         " `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`."
     )
+    return lines
+
+
+def atari_comparison(runs, variants, base="ppo"):
+    """Each arm against today's defaults (`base`), per game and on both of the paper's Atari metrics: the difference
+    of the mean scores and its standard error over seeds (difference(), as the shortfalls suites have it), and whether
+    the arm is ahead or behind by more than 2 standard errors, or within them (issue 30)."""
+    by_env = group(runs)
+    arms = [v for v in variants if v != base]
+    if base not in variants or not arms:
+        return []
+    lines = [
+        "",
+        f"Each arm against `{base}` ({ATARI_NAMES[base]}, at today's defaults), per game: the difference of the mean"
+        " scores ± its standard error over seeds, sqrt(s1²/n1 + s2²/n2); **bold** where the difference exceeds 2"
+        " standard errors, and only then does the verdict call the arm ahead or behind. A difference needs 2 or more"
+        " seeds a side. With 3 seeds a side this is a rough guide, not a test.",
+        "",
+        f"| game | arm | last 100 (n) | difference from {base}: last 100 | difference from {base}: all training"
+        " | verdict (last 100) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for env in sorted(by_env):
+        base_runs = by_env[env].get(base, [])
+        for v in [v for v in arms if v in by_env[env]]:
+            arm_runs = by_env[env][v]
+            last = [r.score for r in arm_runs]
+            diff = difference(last, [r.score for r in base_runs])
+            if diff is None:
+                words = "fewer than 2 seeds a side"
+            elif abs(diff[0]) > 2 * diff[1]:
+                words = f"{'ahead of' if diff[0] > 0 else 'behind'} {base} by more than 2 standard errors"
+            else:
+                words = "within 2 standard errors"
+            cells = [
+                f"{fmt(*mean_std(last))} ({len(last)})",
+                fmt_difference(last, [r.score for r in base_runs]),
+                fmt_difference([mean_return(r.rows) for r in arm_runs], [mean_return(r.rows) for r in base_runs]),
+                words,
+            ]
+            lines.append(f"| {env} | {ATARI_NAMES.get(v, v)} | " + " | ".join(cells) + " |")
     return lines
 
 

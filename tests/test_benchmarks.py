@@ -81,12 +81,14 @@ def test_every_suite_is_a_valid_grid(suite):
     run.check_grid(jobs)
 
 
-def test_atari_suite_is_three_games_three_seeds_and_the_sb3_peer():
+def test_atari_suite_is_three_games_three_seeds_and_the_arms_of_issue_30():
     runs = {(job.variant, job.env_id.split("NoFrameskip")[0], job.seed) for job in run.make_grid("atari")}
     assert {(e, s) for v, e, s in runs if v == "ppo"} == {
         (e, s) for e in ("Pong", "Breakout", "BeamRider") for s in (1, 2, 3)
     }
-    assert {(e, s) for v, e, s in runs if v == "sb3"} == {("Pong", 1), ("Breakout", 1)}
+    for arm in ("vf0.5", "sb3"):  # where we trail the peer: Pong and Breakout, 3 seeds each
+        assert {(e, s) for v, e, s in runs if v == arm} == {(e, s) for e in ("Pong", "Breakout") for s in (1, 2, 3)}
+    assert run.SUITES["atari"].variants["vf0.5"] == ("ppo_atari.py", ["--compile", "--vf-coef", "0.5"])
     assert {job.total_timesteps for job in run.make_grid("atari")} == {1_000_000}
 
 
@@ -387,6 +389,44 @@ def test_a_suite_of_changes_is_compared_with_its_default(tmp_path):
     assert f"| Swimmer-v5 | gamma0.999 | 120.0 ± 10.0 (3) | **+30.0 ± {se:.1f}** | yes (110.0) |" in text
     assert "| Swimmer-v5 | clip0.2 | 90.00 ± 10.00 (3) | – | no (110.0) |" in text
     assert "| Swimmer-v5 | const-lr | 95.00 (1) | – | no (110.0) |" in text
+
+
+def test_atari_report_gives_each_arms_difference_from_the_default(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "atari"
+    scores = {
+        "ppo": [10.0, 12.0, 14.0],
+        "vf0.5": [20.0, 22.0, 24.0],  # ahead by 10, far beyond 2 standard errors
+        "sb3": [9.0, 13.0, 17.0],  # ahead by 1, well within them
+    }
+    for variant, values in scores.items():
+        for seed, value in enumerate(values, start=1):
+            fake_run(folder, "A-v0", variant, seed, value)
+    fake_run(folder, "A-v0", "default", 1, 30.0)  # one seed: no standard error, so no verdict
+    text = report.report(folder, reference={}, results=results)
+    # By hand: ppo's and vf0.5's scores vary by 4 over their 3 seeds, sb3's by 16, so the standard errors of the
+    # differences are sqrt(4/3 + 4/3) and sqrt(16/3 + 4/3). Over all of training (fake_run's 50 early episodes at
+    # -1e4, then the 100 that make the score), each difference and its error shrink to 100/150 of these.
+    se_vf = math.sqrt(4 / 3 + 4 / 3)
+    se_sb3 = math.sqrt(16 / 3 + 4 / 3)
+    scale = 100 / 150
+    d_vf = statistics.mean(scores["vf0.5"]) - statistics.mean(scores["ppo"])
+    d_sb3 = statistics.mean(scores["sb3"]) - statistics.mean(scores["ppo"])
+    vf = (
+        f"**{d_vf:+.1f} ± {se_vf:.1f}** | **{d_vf * scale:+.1f} ± {se_vf * scale:.1f}**"
+        " | ahead of ppo by more than 2 standard errors"
+    )
+    sb3 = f"{d_sb3:+.1f} ± {se_sb3:.1f} | {d_sb3 * scale:+.1f} ± {se_sb3 * scale:.1f} | within 2 standard errors"
+    for variant, name in (("vf0.5", "ours, --vf-coef 0.5"), ("sb3", "SB3 PPO (RL Zoo)")):
+        cell = f"{statistics.mean(scores[variant]):.2f} ± {statistics.stdev(scores[variant]):.2f} (3)"
+        assert f"| A-v0 | {name} | {cell} | {vf if variant == 'vf0.5' else sb3} |" in text
+    assert "| A-v0 | ours, before the issue-14 fixes | 30.00 (1) | – | – | fewer than 2 seeds a side |" in text
+    behind = [0.0, 2.0, 4.0]  # vf0.5 now behind ppo by 10, with the same spread
+    for seed, value in enumerate(behind, start=1):
+        fake_run(folder, "A-v0", "vf0.5", seed, value)
+    d_vf = statistics.mean(behind) - statistics.mean(scores["ppo"])
+    text = report.report(folder, reference={}, results=results)
+    assert f"**{d_vf:+.1f} ± {se_vf:.1f}**" in text and "behind ppo by more than 2 standard errors" in text
 
 
 def test_an_older_env_version_is_compared_with_the_default_on_the_newest(tmp_path):
