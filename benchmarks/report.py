@@ -752,6 +752,9 @@ def readme_block(results=RESULTS, reference=None, full=False):
             if kind == "table1":  # just the normalized score, the paper's Table 1, and the verdict on its order
                 table = table[table.index("| setting | ours: normalized score | runs | paper, Table 1 |") :]
                 table = table[: table.index("") + 2]
+            comparison = [i for i, line in enumerate(table) if line.startswith("Each arm against")]
+            if comparison:  # the arms' differences from the default: in report.md and benchmarks/README.md only
+                table = table[: comparison[0] - 1]
             lines += ["", f"**{heading}** ([report]({rel}/report.md))", "", *table]
     return "\n".join(lines + ["", README_END])
 
