@@ -3,25 +3,20 @@ stage 3 passes to its module-level math recorded, and each detail checked agains
 from the saved models: the score at the EOS (a fixed penalty without one), the KL penalty to the frozen pi_SFT, and
 the mask that keeps the tokens after an EOS out of every loss."""
 
-import dataclasses
-
 import pytest
 import torch
-from conftest import TINY, load_script
+from conftest import load_script
+from test_rlhf import tiny_args
 
 rlhf = load_script("ppo_rlhf.py")
 
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
-    flags = dict(zip(TINY["ppo_rlhf.py"]["tiny"][::2], TINY["ppo_rlhf.py"]["tiny"][1::2], strict=True))
-    types = {f.name: type(getattr(rlhf.Args(), f.name)) for f in dataclasses.fields(rlhf.Args)}
-    values = {name[2:].replace("-", "_"): value for name, value in flags.items()}
-    values = {name: types[name](value) for name, value in values.items()}
     # Responses of at most 6 tokens, so that some never reach their EOS; a beta that a dropped coefficient would show.
-    values |= {"response_length": 6, "kl_coef": 0.3, "no_eos_score": -2.5}
-    run_dir = tmp_path_factory.mktemp("rlhf") / "run"
-    args = rlhf.Args(**values, torch_threads=1, run_dir=str(run_dir))
+    path = tmp_path_factory.mktemp("rlhf")
+    args = tiny_args(path, response_length=6, kl_coef=0.3, no_eos_score=-2.5)
+    run_dir = path / "run"
     calls = {"rollout": [], "compute_rewards": [], "compute_gae": [], "clipped_surrogate_loss": [], "value_loss": []}
     patch = pytest.MonkeyPatch()
     for name, log in calls.items():
