@@ -693,6 +693,8 @@ def test_readme_results_block_is_generated_from_the_committed_csvs(path, full):
     else:  # the quick start's time and score, from the mujoco suite's Hopper runs
         start, end = readme.index(report.QUICK_START), readme.index(report.QUICK_END) + len(report.QUICK_END)
         assert readme[start:end] == report.quickstart_block(), "run python benchmarks/report.py"
+        start, end = readme.index(report.RLHF_START), readme.index(report.RLHF_END) + len(report.RLHF_END)
+        assert readme[start:end] == report.rlhf_block(), "run python benchmarks/report.py"
     for folder in report.suite_folders():
         assert (folder / "report.md").exists()
         for env in {r.env_id for r in report.load_runs(folder)}:
@@ -729,3 +731,26 @@ def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
     text = report.report(job.results_dir)
     assert "| beta0.05 | " in text and "the film was good" in text
     assert (job.results_dir / "curves" / "reviews.png").exists()
+
+
+def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_path):
+    """rlhf_block counts a seed as over-optimized when its gold score ends more than 10% below its peak while the RM
+    score holds or rises (Gao et al. 2022), and no other; and reports the controller's final KL against its target."""
+    folder = tmp_path / "rlhf"
+    steps = 12_800
+    rise = [i / 99 for i in range(100)]  # 0 to 1 over 100 iterations
+    falls_late = [min(r, 1.2 - r) for r in rise]  # gold peaks at 0.6 and ends at 0.2
+    shapes = {("beta0", 1): (rise, falls_late), ("beta0", 2): (rise, rise), ("beta0", 3): (falls_late, falls_late)}
+    shapes |= {("adaptive", seed): (rise, rise) for seed in (1, 2)}
+    for (variant, seed), (score, gold) in shapes.items():
+        fake_run(folder, "reviews", variant, seed, 1.0, steps=steps)
+        rows = []
+        for i in range(100):
+            stats = {"score": score[i], "gold_score": gold[i], "kl": 2.0 + seed / 10, "kl_coef": 0.1 * seed}
+            rows.append([(i + 1) * 128] + [stats.get(name, 0.5) for name in run.RLHF_STATS])
+        run.write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", run.RLHF_STATS, rows)
+    block = report.rlhf_block(tmp_path)
+    assert "beta0 1 of 3 (seed 1: " in block  # seed 2's gold kept rising; seed 3's fell with the score
+    assert "adaptive 0 of 2" in block
+    assert "ended at a KL of 2.15 ± 0.07 nats, for a target of 2" in block
+    assert block.startswith(report.RLHF_START) and block.endswith(report.RLHF_END)
