@@ -13,8 +13,6 @@ detail N" (of 9). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes
 The paper's 10M steps are a job for a GPU (auto picks CUDA when there is one).
 """
 
-from __future__ import annotations
-
 import contextlib
 import math
 import os
@@ -48,7 +46,9 @@ class Args:
     env_id: str = "BreakoutNoFrameskip-v4"
     total_timesteps: int = 10_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 10M)
     max_episode_frames: int = 108_000  # truncate a game after this many frames of play (30 minutes at 60 Hz)
-    fire_on_life_loss: bool = False  # also press FIRE after a lost life (ale-py presses it only at a game's start)
+    # After a lost life, step FIRE in place of the policy's action, and train on that step as the policy's own (ale-py
+    # presses FIRE only at a game's start, and its vector env cannot press it as a hidden step, as baselines' did)
+    fire_on_life_loss: bool = False
     learning_rate: float = 2.5e-4  # Adam step size at the start (paper: 2.5e-4 x alpha)
     num_envs: int = 8  # number of parallel actors N (paper: 8)
     num_steps: int = 128  # steps per actor in each rollout, the horizon T (paper: 128)
@@ -518,6 +518,11 @@ def progress(global_step, total_steps, sps, recent_returns):
 
 # A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
 RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
+FORMAT = ("ppo-checkpoint-v1", SCRIPT)  # what a checkpoint says it is: a checkpoint of this script
+# Flags that must be positive, and flags that must lie in [low, high]. Every float must be finite too.
+POSITIVE = "total_timesteps num_envs num_steps minibatch_size update_epochs save_every eval_episodes".split()
+POSITIVE += "torch_threads learning_rate clip_coef max_grad_norm max_episode_frames".split()
+BOUNDS = {"gamma": (0, 1), "gae_lambda": (0, 1), "vf_coef": (0, math.inf), "ent_coef": (0, math.inf)}
 
 
 def resumed_args(checkpoint, args):
@@ -553,9 +558,6 @@ def save_checkpoint(path, args, agent, optimizer, global_step, iteration):
     os.replace(f"{path}.tmp", path)
 
 
-FORMAT = ("ppo-checkpoint-v1", SCRIPT)
-
-
 def load_checkpoint(path):
     """A checkpoint of this script, loaded on the CPU; a ValueError with a one-line reason if it is not one."""
     if not os.path.isfile(path):
@@ -567,12 +569,6 @@ def load_checkpoint(path):
     if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != FORMAT:
         raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
     return checkpoint
-
-
-# Flags that must be positive, and flags that must lie in [low, high]. Every float must be finite too.
-POSITIVE = "total_timesteps num_envs num_steps minibatch_size update_epochs save_every eval_episodes".split()
-POSITIVE += "torch_threads learning_rate clip_coef max_grad_norm max_episode_frames".split()
-BOUNDS = {"gamma": (0, 1), "gae_lambda": (0, 1), "vf_coef": (0, math.inf), "ent_coef": (0, math.inf)}
 
 
 def check_args(args):

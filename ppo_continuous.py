@@ -10,8 +10,6 @@ their 13) and "continuous detail N" (of their 9 for continuous actions).
     python ppo_continuous.py --help                   # every flag, with its default
 """
 
-from __future__ import annotations
-
 import contextlib
 import math
 import os
@@ -485,6 +483,11 @@ def progress(global_step, total_steps, sps, recent_returns):
 
 # A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
 RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
+FORMAT = ("ppo-checkpoint-v1", SCRIPT)  # what a checkpoint says it is: a checkpoint of this script
+# Flags that must be positive, and flags that must lie in [low, high]. Every float must be finite too.
+POSITIVE = "total_timesteps num_envs num_steps minibatch_size update_epochs save_every eval_episodes".split()
+POSITIVE += "torch_threads learning_rate clip_coef max_grad_norm".split()
+BOUNDS = {"gamma": (0, 1), "gae_lambda": (0, 1), "vf_coef": (0, math.inf), "ent_coef": (0, math.inf)}
 
 
 def resumed_args(checkpoint, args):
@@ -520,9 +523,6 @@ def save_checkpoint(path, args, agent, optimizer, global_step, iteration):
     os.replace(f"{path}.tmp", path)
 
 
-FORMAT = ("ppo-checkpoint-v1", SCRIPT)
-
-
 def load_checkpoint(path):
     """A checkpoint of this script, loaded on the CPU; a ValueError with a one-line reason if it is not one."""
     if not os.path.isfile(path):
@@ -534,12 +534,6 @@ def load_checkpoint(path):
     if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != FORMAT:
         raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
     return checkpoint
-
-
-# Flags that must be positive, and flags that must lie in [low, high]. Every float must be finite too.
-POSITIVE = "total_timesteps num_envs num_steps minibatch_size update_epochs save_every eval_episodes".split()
-POSITIVE += "torch_threads learning_rate clip_coef max_grad_norm".split()
-BOUNDS = {"gamma": (0, 1), "gae_lambda": (0, 1), "vf_coef": (0, math.inf), "ent_coef": (0, math.inf)}
 
 
 def check_args(args):

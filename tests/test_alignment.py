@@ -137,5 +137,5 @@ def test_scripts_stay_within_their_budgets(script, limit):
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_scripts_do_not_grow_past_what_they_reached(script):
     # A ceiling at the counts reached (issue 28's note), until the budgets above are met: no growth in the meantime.
-    reached = {"ppo_continuous.py": 625, "ppo_atari.py": 645, "ppo_kl_penalty.py": 675}
+    reached = {"ppo_continuous.py": 620, "ppo_atari.py": 640, "ppo_kl_penalty.py": 670}
     assert len((ROOT / script).read_text().splitlines()) <= reached.get(script, 600)
