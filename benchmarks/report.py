@@ -765,7 +765,7 @@ def rlhf_block(results=RESULTS):
     if minutes:
         lines.append(
             f"- **Time.** A default run, `python ppo_rlhf.py`, took {minutes[0]:.1f}–{minutes[-1]:.1f} min here, all"
-            f" three stages on one core of a 2-core machine ({len(minutes)} runs, other work sharing it)."
+            f" three stages on one core of a 2-core machine ({len(minutes)} runs; other work may have shared it)."
         )
     overoptimized = []
     for variant in variants:
@@ -779,8 +779,8 @@ def rlhf_block(results=RESULTS):
         detail = f" ({'; '.join(falls)})" if falls else ""
         overoptimized.append(f"{variant} {len(falls)} of {len(last[variant]['score'])}{detail}")
     lines.append(
-        "- **Over-optimization.** Seeds whose gold score ended more than 10% below its peak while the RM score held"
-        " or rose: " + ", ".join(overoptimized) + "."
+        "- **Over-optimization.** Seeds whose gold score (per tenth of training) ended more than 10% below its peak,"
+        " while the RM score ended at least as high as at that peak: " + ", ".join(overoptimized) + "."
     )
     adaptive = [v for v, (_, flags) in SUITES["rlhf"].variants.items() if flags == ["--adaptive-kl"] and v in last]
     for variant in adaptive:

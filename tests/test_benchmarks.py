@@ -735,7 +735,8 @@ def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
 
 def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_path):
     """rlhf_block counts a seed as over-optimized when its gold score ends more than 10% below its peak while the RM
-    score holds or rises (Gao et al. 2022), and no other; and reports the controller's final KL against its target."""
+    score ends at least as high as at that peak (Gao et al. 2022), and no other; and gives the controller's final KL
+    beside its target."""
     folder = tmp_path / "rlhf"
     steps = 12_800
     rise = [i / 99 for i in range(100)]  # 0 to 1 over 100 iterations
