@@ -363,7 +363,7 @@ def train(args):
                     global_step += N
                     obs[step] = next_obs
                     action, logprobs[step], _, values[step] = policy(next_obs)
-                    if fire is not None and games.lost_life.any():  # the env, not the policy, presses FIRE
+                    if fire is not None and games.lost_life.any():  # FIRE replaces the action; trained on
                         action = torch.where(torch.as_tensor(games.lost_life, device=device), fire, action)
                         _, logprobs[step], _, values[step] = policy(next_obs, action)
                     actions[step] = action

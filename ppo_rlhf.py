@@ -4,7 +4,7 @@ model to pairs of pi_SFT's samples ranked by a hidden gold reward, and stage 3 f
 with PPO-Clip (Schulman et al. 2017, arXiv:1707.06347, eq. (7), (9), (11)-(12)) and a KL penalty to pi_SFT (Ziegler
 et al. §2). The gold reward shows what the reward model cannot: whether a rising score is real.
 
-    python ppo_rlhf.py                     # the three stages in under 10 min on 2 cores: RM and gold scores rise
+    python ppo_rlhf.py                     # the three stages, on a CPU, in minutes: RM and gold scores rise
     python ppo_rlhf.py --kl-coef 0         # no leash: the reward model's score against the gold score
 """
 

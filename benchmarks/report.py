@@ -537,7 +537,7 @@ def atari_table(runs, reference, variants, results):
         wall = [float(r.meta["wall_time_s"]) for r in runs if r.variant == v and "wall_time_s" in r.meta]
         if wall:
             plural = "s" if len(wall) > 1 else ""
-            walls.append(f"{ATARI_NAMES.get(v, v)} {statistics.mean(wall) / 60:.0f} min ({len(wall)} run{plural})")
+            walls.append(f"{ATARI_NAMES.get(v, v)}: {statistics.mean(wall) / 60:.0f} min ({len(wall)} run{plural})")
     lines.append("")
     if walls:
         lines.append(
@@ -717,10 +717,22 @@ RLHF_END = "<!-- end of rlhf -->"
 
 
 def tenths(run, name):
-    """The mean of a run's rlhf/<name> over each tenth of its iterations, in order."""
+    """The mean of a run's rlhf/<name> over each tenth of its iterations, in order, counted from the end: the last
+    is the mean of the last tenth, as in report.md."""
     column = run[:, 1 + RLHF_STATS.index(name)]
     width = max(1, len(column) // 10)
-    return [column[i : i + width].mean() for i in range(0, len(column) - width + 1, width)]
+    first = len(column) % width
+    return [column[i : i + width].mean() for i in range(first, len(column), width)]
+
+
+def where_run(runs):
+    """Where runs were made, from their CSVs: the torch threads their commands asked for, and the machines."""
+    threads = sorted(
+        {m.group(1) for r in runs if (m := re.search(r"--torch-threads (\d+)", r.meta.get("command", "")))}
+    )
+    machines = sorted({r.meta.get("machine", "an unrecorded machine") for r in runs})
+    count = f"{' or '.join(threads)} torch thread{'s' if threads != ['1'] else ''}" if threads else "torch's threads"
+    return f"{count} on {'; '.join(machines)}"
 
 
 def rlhf_block(results=RESULTS):
@@ -730,7 +742,8 @@ def rlhf_block(results=RESULTS):
     runs = load_runs(folder) if folder.is_dir() else []
     if not runs:
         return "\n".join([RLHF_START, "No run of the rlhf suite is committed yet.", RLHF_END])
-    series = read_rlhf_series(folder)
+    finished = {(r.variant, r.seed) for r in runs}
+    series = {key: s for key, s in read_rlhf_series(folder).items() if key in finished}
     variants = ordered_variants("rlhf", runs)
     seeds = ", ".join(map(str, sorted({r.seed for r in runs})))
     steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in runs}))
@@ -739,8 +752,8 @@ def rlhf_block(results=RESULTS):
         RLHF_START,
         "",
         f"**`rlhf`: {len(runs)} runs (seeds {seeds}; {steps} responses each)**"
-        " ([report, plot and samples](benchmarks/results/rlhf/report.md)), each figure the mean over the last tenth"
-        " of training, ± the std over seeds:",
+        " ([report, plot and samples](benchmarks/results/rlhf/report.md)): each run's mean over the last tenth of"
+        " training, as the mean ± std over seeds:",
         "",
         "| setting | " + " | ".join(heading for _, heading in columns) + " |",
         "|---" * (len(columns) + 1) + "|",
@@ -756,16 +769,14 @@ def rlhf_block(results=RESULTS):
     script = load_script("ppo_rlhf.py").Args()
     # The suite's variant with no flags of its own, at the script's default budget, is `python ppo_rlhf.py`.
     plain = [v for v, (_, flags) in SUITES["rlhf"].variants.items() if not flags]
-    minutes = sorted(
-        float(r.meta["wall_time_s"]) / 60
-        for r in runs
-        if r.variant in plain and int(r.meta["global_step"]) == script.total_episodes
-    )
+    default_runs = [r for r in runs if r.variant in plain and int(r.meta["global_step"]) == script.total_episodes]
+    minutes = sorted(float(r.meta["wall_time_s"]) / 60 for r in default_runs)
     lines.append("")
     if minutes:
         lines.append(
-            f"- **Time.** A default run, `python ppo_rlhf.py`, took {minutes[0]:.1f}–{minutes[-1]:.1f} min here, all"
-            f" three stages on one core of a 2-core machine ({len(minutes)} runs; other work may have shared it)."
+            f"- **Time.** A default run, `python ppo_rlhf.py`, took {minutes[0]:.1f}–{minutes[-1]:.1f} min for all"
+            f" three stages, with {where_run(default_runs)} ({len(minutes)} run{'s' if len(minutes) > 1 else ''};"
+            " other work may have shared it)."
         )
     overoptimized = []
     for variant in variants:
@@ -773,20 +784,26 @@ def rlhf_block(results=RESULTS):
         for (v, seed), run in sorted(series.items()):
             gold = tenths(run, "gold_score")
             score = tenths(run, "score")
+            kl = tenths(run, "kl")
             peak = max(range(len(gold)), key=gold.__getitem__)
-            if v == variant and gold[-1] < gold[peak] - 0.1 * abs(gold[peak]) and score[-1] >= score[peak]:
-                falls.append(f"seed {seed}: {gold[peak]:.1f} to {gold[-1]:.1f}")
+            fell = gold[-1] < gold[peak] - 0.1 * abs(gold[peak])
+            if v == variant and fell and kl[-1] > kl[peak] and score[-1] >= score[peak]:
+                falls.append(
+                    f"seed {seed}: gold {gold[peak]:.1f} to {gold[-1]:.1f} as KL grew {kl[peak]:.1f} to {kl[-1]:.1f}"
+                )
         detail = f" ({'; '.join(falls)})" if falls else ""
         overoptimized.append(f"{variant} {len(falls)} of {len(last[variant]['score'])}{detail}")
     lines.append(
-        "- **Over-optimization.** Seeds whose gold score (per tenth of training) ended more than 10% below its peak,"
-        " while the RM score ended at least as high as at that peak: " + ", ".join(overoptimized) + "."
+        "- **Over-optimization** (Gao et al. 2022). Seeds whose gold score, per tenth of training, ended more than 10%"
+        " below its peak while the KL to π_SFT grew past its value there and the RM score ended at least as high: "
+        + ", ".join(overoptimized)
+        + "."
     )
     adaptive = [v for v, (_, flags) in SUITES["rlhf"].variants.items() if flags == ["--adaptive-kl"] and v in last]
     for variant in adaptive:
         lines.append(
-            f"- **The controller** ended at a KL of {fmt(*mean_std(last[variant]['kl']))} nats, for a target of"
-            f" {script.kl_target:g}, with β ending at {fmt(*mean_std(last[variant]['kl_coef']))}."
+            f"- **The controller** held the KL over the last tenth of training at {fmt(*mean_std(last[variant]['kl']))}"
+            f" nats, for a target of {script.kl_target:g}, with β there at {fmt(*mean_std(last[variant]['kl_coef']))}."
         )
     return "\n".join(lines + ["", RLHF_END])
 
@@ -899,7 +916,7 @@ def quickstart_block(results=RESULTS):
         return "\n".join([QUICK_START, "- **Training**: no benchmark run of Hopper-v5 is committed yet.", QUICK_END])
     line = (
         f"- **Training** took {minutes[0]:.0f}–{minutes[-1]:.0f} min per run for the benchmarks,"
-        f" on one core of a 2-core machine, and ended with a mean return of {scores[0]:,.0f}–{scores[-1]:,.0f}"
+        f" with {where_run(runs)}, and ended with a mean return of {scores[0]:,.0f}–{scores[-1]:,.0f}"
         " over the last 100 episodes"
         f" ({len(runs)} seeds; see [Results](#results))."
     )

@@ -8,6 +8,7 @@ import statistics
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 from conftest import ROOT, signal_at_checkpoint
@@ -734,24 +735,37 @@ def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
 
 
 def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_path):
-    """rlhf_block counts a seed as over-optimized when its gold score ends more than 10% below its peak while the RM
-    score ends at least as high as at that peak (Gao et al. 2022), and no other; and gives the controller's final KL
-    beside its target."""
+    """rlhf_block counts a seed as over-optimized when its gold score ends more than 10% below its peak while the KL
+    grows past its value there and the RM score ends at least as high (Gao et al. 2022), and no other; gives the
+    controller's final KL beside its target, and the default runs' wall time."""
     folder = tmp_path / "rlhf"
-    steps = 12_800
     rise = [i / 99 for i in range(100)]  # 0 to 1 over 100 iterations
-    falls_late = [min(r, 1.2 - r) for r in rise]  # gold peaks at 0.6 and ends at 0.2
-    shapes = {("beta0", 1): (rise, falls_late), ("beta0", 2): (rise, rise), ("beta0", 3): (falls_late, falls_late)}
-    shapes |= {("adaptive", seed): (rise, rise) for seed in (1, 2)}
-    for (variant, seed), (score, gold) in shapes.items():
-        fake_run(folder, "reviews", variant, seed, 1.0, steps=steps)
+    fall = [1 - r for r in rise]
+    falls_late = [min(r, 1.2 - r) for r in rise]  # peaks at 0.6 and ends at 0.2
+    dips = [min(r, 0.8) - 0.25 * max(0.0, r - 0.8) for r in rise]  # flat at 0.8, then 5% below it at the end
+    shapes = {  # (RM score, gold, KL) of each run
+        ("beta0", 1): (rise, falls_late, rise),  # over-optimized
+        ("beta0", 2): (rise, rise, rise),  # gold kept rising
+        ("beta0", 3): (falls_late, falls_late, rise),  # gold fell with the score
+        ("beta0", 4): (rise, falls_late, fall),  # gold fell as the KL fell: the controller pulling back, not this
+        ("beta0", 5): (rise, dips, rise),  # gold fell, but by less than 10%
+        ("adaptive", 1): (rise, rise, [2.1] * 100),
+        ("adaptive", 2): (rise, rise, [2.2] * 100),
+        ("beta0.05", 1): (rise, rise, rise),
+    }
+    for (variant, seed), (score, gold, kl) in shapes.items():
+        fake_run(folder, "reviews", variant, seed, 1.0, steps=12_800)
         rows = []
         for i in range(100):
-            stats = {"score": score[i], "gold_score": gold[i], "kl": 2.0 + seed / 10, "kl_coef": 0.1 * seed}
+            stats = {"score": score[i], "gold_score": gold[i], "kl": kl[i], "kl_coef": 0.1 * seed}
             rows.append([(i + 1) * 128] + [stats.get(name, 0.5) for name in run.RLHF_STATS])
         run.write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", run.RLHF_STATS, rows)
     block = report.rlhf_block(tmp_path)
-    assert "beta0 1 of 3 (seed 1: " in block  # seed 2's gold kept rising; seed 3's fell with the score
-    assert "adaptive 0 of 2" in block
-    assert "ended at a KL of 2.15 ± 0.07 nats, for a target of 2" in block
+    assert "beta0 1 of 5 (seed 1: gold 0.6 to 0.2 as KL grew 0.6 to 1.0)" in block
+    assert "adaptive 0 of 2" in block and "beta0.05 0 of 1" in block
+    assert "held the KL over the last tenth of training at 2.15 ± 0.07 nats, for a target of 2" in block
+    assert "took 1.0–1.0 min for all three stages, with torch's threads on test machine (1 run;" in block
     assert block.startswith(report.RLHF_START) and block.endswith(report.RLHF_END)
+    # Tenths count from the end, so that the last is the last tenth of the iterations, as report.md's table takes it.
+    series = np.arange(25.0)[:, None].repeat(1 + len(run.RLHF_STATS), axis=1)
+    assert report.tenths(series, "score")[-1] == (23 + 24) / 2
