@@ -428,6 +428,10 @@ def test_atari_report_gives_each_arms_difference_from_the_default(tmp_path):
     d_vf = statistics.mean(behind) - statistics.mean(scores["ppo"])
     text = report.report(folder, reference={}, results=results)
     assert f"**{d_vf:+.1f} ± {se_vf:.1f}**" in text and "behind ppo by more than 2 standard errors" in text
+    # The README's short block: ours at the defaults beside the peer; the arms and the history only in the full one.
+    short = report.readme_block(results=results, reference={})
+    assert "SB3 PPO (RL Zoo): last 100 (n)" in short and "--vf-coef 0.5" not in short and "issue-14" not in short
+    assert "--vf-coef 0.5" in report.readme_block(results=results, reference={}, full=True)
 
 
 def test_an_older_env_version_is_compared_with_the_default_on_the_newest(tmp_path):
