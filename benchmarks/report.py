@@ -667,8 +667,7 @@ def rlhf_report(folder, runs):
         runs_of = [series[key] for key in sorted(series) if key[0] == variant]
         cells = []
         for name, _ in RLHF_COLUMNS:
-            column = 1 + RLHF_STATS.index(name)
-            last = [s[-max(1, len(s) // 10) :, column].mean() for s in runs_of]
+            last = [tenths(s, name)[-1] for s in runs_of]
             cells.append(f"{fmt(*mean_std(last))} ({len(last)})")
         lines.append(f"| {variant} | " + " | ".join(cells) + " |")
     lines += ["", "![RM and gold score against sqrt(KL)](curves/reviews.png)", "", "## Responses printed last", ""]
