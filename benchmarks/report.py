@@ -55,6 +55,7 @@ COLUMNS = {
 ATARI_NAMES = {
     "ppo": "ours",
     "vf0.5": "ours, --vf-coef 0.5",
+    "e4": "ours, --update-epochs 4",
     "sb3": "SB3 PPO (RL Zoo)",
     "default": "ours, before the issue-14 fixes",
 }
