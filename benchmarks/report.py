@@ -510,44 +510,37 @@ def mean_return(rows):
 
 
 def atari_table(runs, reference, variants, results):
-    """Per game, both of the paper's Atari metrics (§6.4) for each variant, as mean ± std over seeds of
-    the raw game score: the mean over all of training (which rewards fast learning) and over the last
-    100 episodes; then the random policy and the published figures, at ten times our budget."""
+    """Per game, both of the paper's Atari metrics (§6.4) for each variant, one row each, as mean ± std over seeds
+    of the raw game score: the mean over all of training (which rewards fast learning) and over the last 100
+    episodes; and on a game's first row, the random policy and the published figures, at ten times our budget."""
     by_env = group(runs)
-    head = []
-    for v in variants:
-        name = ATARI_NAMES.get(v, v)
-        head += [f"{name}: all training (n)", f"{name}: last 100 (n)"]
-    head += ["random policy"] + [title for _, title, _ in COLUMNS["atari"]]
+    head = ["setting", "all training (n)", "last 100 (n)", "random policy"] + [t for _, t, _ in COLUMNS["atari"]]
     lines = ["| game | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
     for env in sorted(by_env):
-        cells = []
-        for v in variants:
-            group_runs = by_env[env].get(v, [])
-            for metric in (lambda r: mean_return(r.rows), lambda r: r.score):
-                values = [metric(r) for r in group_runs]
-                cells.append(f"{fmt(*mean_std(values))} ({len(values)})" if values else "–")
         rand = random_score(env, results)
-        cells.append(fmt(rand) if rand is not None else "not measured")
+        refs = [fmt(rand) if rand is not None else "not measured"]
         for column, _, setting in COLUMNS["atari"]:
             ref = reference.get((column, env_base(env), setting))
-            cells.append(fmt(ref[0], ref[1]) if ref else "–")
-        lines.append(f"| {env} | " + " | ".join(cells) + " |")
+            refs.append(fmt(ref[0], ref[1]) if ref else "–")
+        for i, v in enumerate(v for v in variants if v in by_env[env]):
+            cells = [ATARI_NAMES.get(v, v)]
+            for metric in (lambda r: mean_return(r.rows), lambda r: r.score):
+                values = [metric(r) for r in by_env[env][v]]
+                cells.append(f"{fmt(*mean_std(values))} ({len(values)})")
+            cells += refs if i == 0 else [""] * len(refs)  # the game's references once, on its first row
+            lines.append(f"| {env} | " + " | ".join(cells) + " |")
     walls = []
     for v in variants:
         wall = [float(r.meta["wall_time_s"]) for r in runs if r.variant == v and "wall_time_s" in r.meta]
         if wall:
             plural = "s" if len(wall) > 1 else ""
             walls.append(f"{ATARI_NAMES.get(v, v)}: {statistics.mean(wall) / 60:.0f} min ({len(wall)} run{plural})")
-    lines.append("")
-    if walls:
-        lines.append(
-            f"- Wall time per run here, on average (other work may have shared the machine): {'; '.join(walls)}."
-        )
-    lines.append(
-        "- The paper's budget, 10M steps, on a GPU (not yet tested on one here):"
+    gpu = (
+        "The paper's budget, 10M steps, on a GPU (not yet tested on one here):"
         " `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`."
     )
+    wall = f"Wall time per run here, on average (other work may have shared the machine): {'; '.join(walls)}. "
+    lines += ["", f"- {wall if walls else ''}{gpu}"]
     return lines
 
 

@@ -406,6 +406,18 @@ def test_atari_report_gives_each_arms_difference_from_the_default(tmp_path):
             fake_run(folder, "A-v0", variant, seed, value)
     fake_run(folder, "A-v0", "default", 1, 30.0)  # one seed: no standard error, so no verdict
     text = report.report(folder, reference={}, results=results)
+    # The scores, one row per game and setting: both of the paper's metrics, the mean over all of training
+    # (fake_run's 50 episodes at -1e4, then the 100 that make the score; in the thousands, so no decimals) and
+    # over the last 100 episodes.
+    for variant, name in (("ppo", "ours"), ("vf0.5", "ours, --vf-coef 0.5"), ("sb3", "SB3 PPO (RL Zoo)")):
+        whole = [(50 * -1e4 + 100 * v) / 150 for v in scores[variant]]
+        last = scores[variant]
+        row = (
+            f"| A-v0 | {name} | {statistics.mean(whole):,.0f} ± {statistics.stdev(whole):,.0f} (3)"
+            f" | {statistics.mean(last):.2f} ± {statistics.stdev(last):.2f} (3) |"
+            + (" not measured |" if variant == "ppo" else "  |")  # the random policy, on the game's first row only
+        )
+        assert row in text
     # By hand: ppo's and vf0.5's scores vary by 4 over their 3 seeds, sb3's by 16, so the standard errors of the
     # differences are sqrt(4/3 + 4/3) and sqrt(16/3 + 4/3). Over all of training (fake_run's 50 early episodes at
     # -1e4, then the 100 that make the score), each difference and its error shrink to 100/150 of these.
@@ -431,7 +443,7 @@ def test_atari_report_gives_each_arms_difference_from_the_default(tmp_path):
     assert f"**{d_vf:+.1f} ± {se_vf:.1f}**" in text and "behind ppo by more than 2 standard errors" in text
     # The README's short block: ours at the defaults beside the peer; the arms and the history only in the full one.
     short = report.readme_block(results=results, reference={})
-    assert "SB3 PPO (RL Zoo): last 100 (n)" in short and "--vf-coef 0.5" not in short and "issue-14" not in short
+    assert "| A-v0 | SB3 PPO (RL Zoo) |" in short and "--vf-coef 0.5" not in short and "issue-14" not in short
     assert "--vf-coef 0.5" in report.readme_block(results=results, reference={}, full=True)
 
 
