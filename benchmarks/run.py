@@ -11,7 +11,9 @@ a header of '# key: value' lines (the command, commit, package versions, machine
 one row per episode. Run the same command again and it skips every run that has its CSV, resumes
 every unfinished run from its checkpoint in benchmarks/runs/ (the scripts save one every
 --save-every iterations, and on SIGTERM or Ctrl-C), and starts the rest. So a suite can be built
-up over several sessions, and an interrupted sweep loses at most one save interval per run.
+up over several sessions, and an interrupted sweep loses at most one save interval per run. Each
+process a run takes is a line of its attempts.txt (when, commit, seconds, exit); the CSV's wall time
+is their sum. A runner killed outright still has its attempt logged, up to its last status line.
 
 A run with the same script, flags, env, seed and budget as a finished run of another suite is
 not run twice: its CSV is copied (table1's clip0.2 row is the mujoco suite).
@@ -321,13 +323,37 @@ def commit_of(script):
     return rev + (" (script modified)" if git("status", "--porcelain", "--", script) else "")
 
 
+def attempt_line(started, commit, elapsed, returncode, resumed):
+    return (
+        f"{time.strftime('%Y-%m-%dT%H:%M:%S', time.gmtime(started))}\t{commit}\t{elapsed:.0f}\t{returncode}"
+        f"\t{'resume' if resumed else 'start'}\n"
+    )
+
+
 def log_attempt(job, started, commit, elapsed, returncode, resumed):
     """One line per process a run took: when, at which commit, how long, and how it ended."""
     with open(job.run_dir / "attempts.txt", "a") as f:
-        f.write(
-            f"{time.strftime('%Y-%m-%dT%H:%M:%S', time.gmtime(started))}\t{commit}\t{elapsed:.0f}\t{returncode}"
-            f"\t{'resume' if resumed else 'start'}\n"
-        )
+        f.write(attempt_line(started, commit, elapsed, returncode, resumed))
+    (job.run_dir / "attempt.txt").unlink(missing_ok=True)
+
+
+def note_attempt(job, started, commit, resumed):
+    """The attempt under way, rewritten with each status line: a runner killed outright (SIGKILL, or a machine
+    that shuts down) cannot log it, and the next runner logs it from this file as 'killed'."""
+    path = job.run_dir / "attempt.txt"
+    path.with_suffix(".tmp").write_text(attempt_line(started, commit, time.time() - started, "running", resumed))
+    path.with_suffix(".tmp").replace(path)
+
+
+def recover_attempt(job):
+    """Log the attempt a killed runner left in attempt.txt, up to its last status line."""
+    path = job.run_dir / "attempt.txt"
+    if path.exists():
+        fields = path.read_text().rstrip("\n").split("\t")
+        fields[3] = "killed"
+        with open(job.run_dir / "attempts.txt", "a") as f:
+            f.write("\t".join(fields) + "\n")
+        path.unlink()
 
 
 def read_attempts(job):
@@ -556,6 +582,7 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                     print(f"skip   {job.name}: another process (pid {other}) is running it", flush=True)
                     continue
                 job.run_dir.mkdir(parents=True, exist_ok=True)
+                recover_attempt(job)
                 resumed = job.checkpoint.exists()
                 cmd = job.command(save_every)
                 if resumed:  # the run's own hyperparameters come back from its checkpoint
@@ -575,6 +602,7 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                 # stops each run exactly once, so that no second signal cuts a checkpoint save short.
                 proc = launch(job, cmd, log)
                 running[proc] = (job, time.time(), commit_of(job.script), resumed, log)
+                note_attempt(job, *running[proc][1:4])
                 job.progress = steps_at_start[job.name] = last_step(job) if resumed else 0
                 print(
                     f"{'resume' if resumed else 'start '} {job.name}"
@@ -605,8 +633,9 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                     )
             if time.time() - last_status > status_every and running:
                 last_status = time.time()
-                for job, *_ in running.values():
+                for job, started, commit, resumed, _ in running.values():
                     job.progress = max(job.progress, last_step(job))
+                    note_attempt(job, started, commit, resumed)
                 print(status_line(jobs, done, total, running, todo, steps_at_start, start), flush=True)
     finally:
         for sig, handler in previous.items():

@@ -1,12 +1,15 @@
 """benchmarks/run.py and benchmarks/report.py: the runner never loses or repeats work, rejects a bad
 grid before it starts anything, and the report's arithmetic is the paper's."""
 
+import contextlib
 import csv
 import math
+import os
 import signal
 import statistics
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -249,6 +252,40 @@ def test_runner_resumes_an_interrupted_run(tmp_path):
     assert steps == sorted(steps), "one curve, without a fold at the resume"
     attempts = [line.split("\t") for line in (run_dir / "attempts.txt").read_text().splitlines()]
     assert [a[4] for a in attempts] == ["start", "resume"] and [a[3] for a in attempts] == ["130", "0"]
+
+
+def test_a_runner_killed_outright_loses_no_attempt(tmp_path):
+    """SIGKILL (or a machine that shuts down) gives the runner no chance to log the attempt; the next runner logs
+    it from the file the killed one kept current, so the run's wall time and commits count it."""
+    total = 6 * 2048
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "table1", "--variants", "kl0.01", *TINY_GRID]
+    cmd += ["--total-timesteps", str(total), "--save-every", "1", "--results-dir", str(tmp_path / "results")]
+    cmd += ["--runs-dir", str(tmp_path / "runs"), "--status-every", "0.2"]
+    run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 180
+        while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.02)
+        time.sleep(1.5)  # a few status lines after the checkpoint
+        proc.kill()
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        with contextlib.suppress(OSError, ValueError):  # its run dies with it, as on a shutdown
+            os.kill(int((run_dir / "pid").read_text()), signal.SIGKILL)
+    noted = (run_dir / "attempt.txt").read_text().split("\t")
+    assert noted[3] == "running" and noted[4].strip() == "start" and int(noted[2]) >= 1
+    assert not (run_dir / "attempts.txt").exists(), "the killed runner logged nothing"
+    runner("table1", "--variants", "kl0.01", *TINY_GRID, "--total-timesteps", str(total), tmp_path=tmp_path)
+    attempts = [line.split("\t") for line in (run_dir / "attempts.txt").read_text().splitlines()]
+    assert [a[3:] for a in attempts] == [["killed", "start"], ["0", "resume"]]
+    assert int(attempts[0][2]) >= int(noted[2]) and not (run_dir / "attempt.txt").exists()
+    csv_path = tmp_path / "results" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1.csv"
+    meta, _ = read_csv(csv_path)
+    assert int(meta["attempts"]) == 2 and int(meta["global_step"]) == total
+    assert int(meta["wall_time_s"]) == sum(int(a[2]) for a in attempts)
 
 
 # ---------------------------------------------------------------- the Ray backend, on a local Ray instance
