@@ -9,7 +9,6 @@ import signal
 import statistics
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -187,9 +186,8 @@ def test_a_shared_kl_run_brings_its_beta_series(tmp_path):
     ).read_text()
 
 
-def interrupt_at_first_checkpoint(tmp_path, total, *extra):
-    """Start a sweep of one KL run of `total` steps, SIGTERM the runner once the run has saved a checkpoint,
-    and check that it stopped there. Returns the runner's command and the checkpoint's step."""
+def tiny_sweep(tmp_path, total, *extra, status_every="1"):
+    """The runner's command for one KL run of `total` steps that saves after each iteration, and its run's folder."""
     cmd = [
         sys.executable,
         str(ROOT / "benchmarks" / "run.py"),
@@ -206,10 +204,16 @@ def interrupt_at_first_checkpoint(tmp_path, total, *extra):
         "--runs-dir",
         str(tmp_path / "runs"),
         "--status-every",
-        "1",
+        status_every,
         *extra,
     ]
-    run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
+    return cmd, tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
+
+
+def interrupt_at_first_checkpoint(tmp_path, total, *extra):
+    """Start a sweep of one KL run of `total` steps, SIGTERM the runner once the run has saved a checkpoint,
+    and check that it stopped there. Returns the runner's command and the checkpoint's step."""
+    cmd, run_dir = tiny_sweep(tmp_path, total, *extra)
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     out, err = signal_at_checkpoint(proc, run_dir / "checkpoint.pt", signal.SIGTERM, wait=180)
     assert proc.returncode == 130, (out, err)
@@ -258,21 +262,11 @@ def test_a_runner_killed_outright_loses_no_attempt(tmp_path):
     """SIGKILL (or a machine that shuts down) gives the runner no chance to log the attempt; the next runner logs
     it from the file the killed one kept current, so the run's wall time and commits count it."""
     total = 6 * 2048
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "table1", "--variants", "kl0.01", *TINY_GRID]
-    cmd += ["--total-timesteps", str(total), "--save-every", "1", "--results-dir", str(tmp_path / "results")]
-    cmd += ["--runs-dir", str(tmp_path / "runs"), "--status-every", "0.2"]
-    run_dir = tmp_path / "runs" / run.results_folder("table1", total) / "InvertedPendulum-v5__kl0.01__seed1"
+    cmd, run_dir = tiny_sweep(tmp_path, total, status_every="0.2")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.time() + 180
-        while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
-            time.sleep(0.02)
-        time.sleep(1.5)  # a few status lines after the checkpoint
-        proc.kill()
-        proc.communicate(timeout=60)
+        signal_at_checkpoint(proc, run_dir / "checkpoint.pt", signal.SIGKILL, wait=180)
     finally:
-        if proc.poll() is None:
-            proc.kill()
         with contextlib.suppress(OSError, ValueError):  # its run dies with it, as on a shutdown
             os.kill(int((run_dir / "pid").read_text()), signal.SIGKILL)
     noted = (run_dir / "attempt.txt").read_text().split("\t")
