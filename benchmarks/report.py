@@ -539,8 +539,8 @@ def atari_table(runs, reference, variants, results):
         "The paper's budget, 10M steps, on a GPU (not yet tested on one here):"
         " `python ppo_atari.py --env-id BreakoutNoFrameskip-v4 --device cuda --compile`."
     )
-    wall = f"Wall time per run here, on average (other work may have shared the machine): {'; '.join(walls)}. "
-    lines += ["", f"- {wall if walls else ''}{gpu}"]
+    timing = f"Wall time per run here, on average (other work may have shared the machine): {'; '.join(walls)}. "
+    lines += ["", f"- {timing if walls else ''}{gpu}"]
     return lines
 
 
