@@ -601,8 +601,9 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                 # A session of its own: Ctrl-C in the terminal reaches only this runner, which then
                 # stops each run exactly once, so that no second signal cuts a checkpoint save short.
                 proc = launch(job, cmd, log)
-                running[proc] = (job, time.time(), commit_of(job.script), resumed, log)
-                note_attempt(job, *running[proc][1:4])
+                started, commit = time.time(), commit_of(job.script)
+                running[proc] = (job, started, commit, resumed, log)
+                note_attempt(job, started, commit, resumed)
                 job.progress = steps_at_start[job.name] = last_step(job) if resumed else 0
                 print(
                     f"{'resume' if resumed else 'start '} {job.name}"
