@@ -56,6 +56,7 @@ ATARI_NAMES = {
     "ppo": "ours",
     "vf0.5": "ours, --vf-coef 0.5",
     "e4": "ours, --update-epochs 4",
+    "novclip": "ours, --no-clip-vloss",
     "sb3": "SB3 PPO (RL Zoo)",
     "default": "ours, before the issue-14 fixes",
 }
