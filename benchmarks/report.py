@@ -57,6 +57,7 @@ ATARI_NAMES = {
     "vf0.5": "ours, --vf-coef 0.5",
     "e4": "ours, --update-epochs 4",
     "novclip": "ours, --no-clip-vloss",
+    "zoo": "ours, --update-epochs 4 --vf-coef 0.5 --no-clip-vloss",
     "sb3": "SB3 PPO (RL Zoo)",
     "default": "ours, before the issue-14 fixes",
 }

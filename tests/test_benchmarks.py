@@ -89,11 +89,14 @@ def test_atari_suite_is_three_games_three_seeds_and_the_arms_of_issue_30():
     assert {(e, s) for v, e, s in runs if v == "ppo"} == {
         (e, s) for e in ("Pong", "Breakout", "BeamRider") for s in (1, 2, 3)
     }
-    for arm in ("vf0.5", "e4", "novclip", "sb3"):  # where we trail the peer: Pong and Breakout, 3 seeds each
+    for arm in ("vf0.5", "e4", "zoo", "sb3"):  # where we trail the peer: Pong and Breakout, 3 seeds each
         assert {(e, s) for v, e, s in runs if v == arm} == {(e, s) for e in ("Pong", "Breakout") for s in (1, 2, 3)}
+    assert {(e, s) for v, e, s in runs if v == "novclip"} == {("Pong", s) for s in (1, 2, 3)}
     assert run.SUITES["atari"].variants["vf0.5"] == ("ppo_atari.py", ["--compile", "--vf-coef", "0.5"])
     assert run.SUITES["atari"].variants["e4"] == ("ppo_atari.py", ["--compile", "--update-epochs", "4"])
     assert run.SUITES["atari"].variants["novclip"] == ("ppo_atari.py", ["--compile", "--no-clip-vloss"])
+    zoo = ["--compile", "--update-epochs", "4", "--vf-coef", "0.5", "--no-clip-vloss"]
+    assert run.SUITES["atari"].variants["zoo"] == ("ppo_atari.py", zoo)
     assert {job.total_timesteps for job in run.make_grid("atari")} == {1_000_000}
 
 
