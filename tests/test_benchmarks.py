@@ -440,6 +440,7 @@ def test_atari_report_gives_each_arms_difference_from_the_default(tmp_path):
         for seed, value in enumerate(values, start=1):
             fake_run(folder, "A-v0", variant, seed, value)
     fake_run(folder, "A-v0", "default", 1, 30.0)  # one seed: no standard error, so no verdict
+    fake_run(folder, "A-v0", "zoo", 1, 25.0)
     text = report.report(folder, reference={}, results=results)
     # The scores, one row per game and setting: both of the paper's metrics, the mean over all of training
     # (fake_run's 50 episodes at -1e4, then the 100 that make the score; in the thousands, so no decimals) and
@@ -476,10 +477,14 @@ def test_atari_report_gives_each_arms_difference_from_the_default(tmp_path):
     d_vf = statistics.mean(behind) - statistics.mean(scores["ppo"])
     text = report.report(folder, reference={}, results=results)
     assert f"**{d_vf:+.1f} ± {se_vf:.1f}**" in text and "behind ppo by more than 2 standard errors" in text
-    # The README's short block: ours at the defaults beside the peer; the arms and the history only in the full one.
+    # The README's short block: ours at the defaults, with the RL Zoo's settings, and the peer; the single arms and
+    # the history only in the full one.
     short = report.readme_block(results=results, reference={})
-    assert "| A-v0 | SB3 PPO (RL Zoo) |" in short and "--vf-coef 0.5" not in short and "issue-14" not in short
-    assert "--vf-coef 0.5" in report.readme_block(results=results, reference={}, full=True)
+    zoo = [line for line in short.splitlines() if line.startswith("| A-v0 | ours with the RL Zoo's hyperparameters (")]
+    assert len(zoo) == 1 and "| 25.00 (1) |" in zoo[0]  # its last 100 games
+    assert "| A-v0 | ours | " in short and "| A-v0 | SB3 PPO (RL Zoo) |" in short
+    assert "| A-v0 | ours, --vf-coef 0.5 |" not in short and "issue-14" not in short
+    assert "| A-v0 | ours, --vf-coef 0.5 |" in report.readme_block(results=results, reference={}, full=True)
 
 
 def test_an_older_env_version_is_compared_with_the_default_on_the_newest(tmp_path):
