@@ -175,6 +175,19 @@ SUITES = {
         env_flag=None,
         budget_flag="--total-episodes",
     ),
+    # The paper's Figure 3 (issue 41): the algorithms PPO was compared with, on the mujoco suite's tasks and budget.
+    # A2C is Stable-Baselines3's, TRPO sb3-contrib's, each with the RL Zoo's hyperparameters for the task (SB3's
+    # defaults where the Zoo has none; benchmarks/sb3_mujoco.py). PPO's curves are the mujoco suite's runs.
+    "figure3": Suite(
+        {
+            "a2c": ("benchmarks/sb3_mujoco.py", ["--algo", "a2c"]),
+            "trpo": ("benchmarks/sb3_mujoco.py", ["--algo", "trpo"]),
+        },
+        MUJOCO,
+        [1, 2, 3],
+        1_000_000,
+        "SB3's A2C and sb3-contrib's TRPO with the RL Zoo's hyperparameters, beside the mujoco suite's PPO",
+    ),
 }
 
 
@@ -404,8 +417,14 @@ def finish(job):
                     "mujoco",
                     "ale-py",
                     *(["stable-baselines3"] if "sb3" in job.script else []),
+                    *(["sb3-contrib", "rl_zoo3"] if "sb3_mujoco" in job.script else []),
                 )
             ),
+        ),
+        *(
+            [("hyperparameters", load_script(job.script).hyperparameters(job.flags[1], job.env_id)[1])]
+            if "sb3_mujoco" in job.script
+            else []
         ),
         ("wall_time_s", f"{wall:.0f}"),
         ("attempts", len(attempts)),
