@@ -5,7 +5,8 @@ with PPO-Clip (Schulman et al. 2017, arXiv:1707.06347, eq. (7), (9), (11)-(12)) 
 et al. §2). The gold reward shows what the reward model cannot: whether a rising score is real.
 
     python ppo_rlhf.py                     # the three stages, on a CPU, in minutes: RM and gold scores rise
-    python ppo_rlhf.py --kl-coef 0         # no leash: the reward model's score against the gold score
+    python ppo_rlhf.py --kl-coef 0         # no leash: the RM's score rises, the gold score peaks and falls
+    python ppo_rlhf.py --advantage grpo    # GRPO's group-relative advantage in place of the critic and GAE
 """
 
 import copy
@@ -45,7 +46,7 @@ class Args:
     sft_batch_size: int = 64  # reviews per step
     sft_learning_rate: float = 1e-3  # Adam step size
     # Stage 2: the reward model, fitted to pairs of pi_SFT's responses ranked by the gold reward
-    rm_pairs: int = 4096  # pairs of responses (ties dropped), of which a tenth is held out for the accuracy
+    rm_pairs: int = 4096  # comparisons sampled (ties dropped), a tenth held out: fewer make a worse proxy (Gao et al.)
     rm_epochs: int = 4  # epochs over the training pairs
     rm_batch_size: int = 64  # pairs per step
     rm_learning_rate: float = 1e-3  # Adam step size
@@ -54,7 +55,7 @@ class Args:
     batch_size: int = 64  # prompts per rollout
     minibatch_size: int = 32  # responses per minibatch; must divide --batch-size
     update_epochs: int = 4  # epochs K over each rollout
-    learning_rate: float = 1e-4  # Adam step size of the policy and its value function
+    learning_rate: float = 1e-4  # Adam step size of the policy and its critic, constant (Ziegler et al. anneal it to 0)
     kl_coef: float = 0.05  # beta of the per-token penalty -beta (log pi - log pi_SFT), TRL's default; 0: no leash
     adaptive_kl: bool = False  # adapt beta toward --kl-target with Ziegler et al.'s controller
     kl_target: float = 2.0  # the KL[pi || pi_SFT] per response, in nats, that the controller aims at
@@ -62,10 +63,12 @@ class Args:
     gamma: float = 1.0  # discount over tokens
     gae_lambda: float = 0.95  # GAE lambda over tokens
     clip_coef: float = 0.2  # clip range epsilon of L^CLIP, also the value loss's
-    vf_coef: float = 0.1  # c1 of eq. (9), on the squared error
+    vf_coef: float = 0.1  # c1 of eq. (9); Adam undoes it on the default critic's own weights, but for the shared clip
     max_grad_norm: float = 1.0  # clip the global gradient norm to this
     no_eos_score: float = -3.0  # the score of a response that never ends (no EOS), in the RM's normalized units
     value_model: Literal["reward-model", "policy-head"] = "reward-model"  # a critic started from the RM, or a head
+    advantage: Literal["gae", "grpo"] = "gae"  # gae: the critic and GAE; grpo: each response against its group's
+    group_size: int = 8  # grpo: responses sampled for each prompt, one group; must divide --batch-size
     sft_checkpoint: str | None = None  # skip stage 1: take pi_SFT from this sft.pt
     reward_model_checkpoint: str | None = None  # skip stage 2: take the reward model from this reward_model.pt
     save_every: int = 25  # save the PPO checkpoint, and print samples, every this many iterations (and at the end)
@@ -105,6 +108,21 @@ def compute_gae(rewards, values, mask, gamma, gae_lambda):
     return advantages, advantages + values
 
 
+def group_advantages(rewards, mask, group_size):
+    """GRPO's advantage (Shao et al. 2024, arXiv:2402.03300, §4.1.2), in place of GAE and a critic: each response's
+    summed reward minus its group's mean (a group: consecutive rows, one prompt), over the group's std, at each of its
+    tokens. DeepSeek's GRPO and TRL's add an estimate of beta KL[pi || pi_ref] to the loss instead: here it stays in
+    the reward, as in PPO, so that only the advantage differs.
+
+    >>> group_advantages(torch.tensor([[1.0, 0.0], [3.0, 0.0]]), torch.ones(2, 2), 2)
+    tensor([[-0.7071, -0.7071],
+            [ 0.7071,  0.7071]])
+    """
+    returns = rewards.sum(1).view(-1, group_size)
+    advantages = (returns - returns.mean(1, keepdim=True)) / (returns.std(1, keepdim=True) + 1e-8)
+    return advantages.view(-1, 1) * mask
+
+
 def clipped_surrogate_loss(ratio, advantages, clip_coef, mask=None):
     """Minus L^CLIP, paper eq. (7): -E[min(r A, clip(r, 1 - eps, 1 + eps) A)], here over the masked tokens."""
     surr1 = ratio * advantages
@@ -112,12 +130,10 @@ def clipped_surrogate_loss(ratio, advantages, clip_coef, mask=None):
     return -masked_mean(torch.min(surr1, surr2), mask)
 
 
-def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True, mask=None):
-    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 over the masked tokens, optionally clipped (core
-    detail 9, not the paper's): the larger of the errors of V and of the old value moved at most clip_coef to V."""
+def value_loss(newvalue, oldvalue, returns, clip_coef, mask=None):
+    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 over the masked tokens, clipped (core detail 9, not the
+    paper's): the larger of the errors of V and of the old value moved at most clip_coef to V."""
     v_loss_unclipped = (newvalue - returns) ** 2
-    if not clip_vloss:
-        return masked_mean(v_loss_unclipped, mask)
     v_clipped = oldvalue + torch.clamp(newvalue - oldvalue, -clip_coef, clip_coef)
     return masked_mean(torch.max(v_loss_unclipped, (v_clipped - returns) ** 2), mask)
 
@@ -125,6 +141,13 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True, mask=Non
 def preference_loss(chosen_scores, rejected_scores):
     """The Bradley-Terry loss of a reward model, -log sigmoid(r_w - r_l), averaged over pairs."""
     return -F.logsigmoid(chosen_scores - rejected_scores).mean()
+
+
+def pairwise_accuracy(scores, gold):
+    """The share of pairs of responses with different gold scores that the reward model ranks as gold does (nan
+    if there is no such pair): how good a proxy it is on these responses."""
+    differ = gold[:, None] > gold[None, :]
+    return ((scores[:, None] > scores[None, :]) & differ).sum() / differ.sum()
 
 
 def adapt_kl_coef(kl_coef, kl, target, n_steps, horizon):
@@ -150,32 +173,43 @@ PAD, BOS, EOS = range(3)
 TOKEN = {word: i for i, word in enumerate(WORDS)}
 PROMPT_LENGTH = 3  # "<bos> the NOUN": a response goes on from there
 BLOCK_SIZE = 32  # the longest sequence, prompt and response, that the networks take
-GOLD_PENALTY = -6.0  # the gold score of an ill-formed review: that of one "very awful" clause
+GOLD_PENALTY = -6.0  # the gold score of text a reader rejects, garbled or spam: that of one "very awful" clause
 CLAUSE = rf"the ({'|'.join(NOUNS)}) was (?:(very|not) )?({'|'.join(VALENCE)})"
 
 
 def sample_review(rng):
-    """Words of a review from the grammar: 1 to 3 clauses "the NOUN was [very|not] ADJ" joined by "and", then EOS.
-    A policy may write more clauses: the gold reward counts them, and the reward model has never seen them."""
-    words = []
-    for clause in range(3):
+    """Words of a review from the grammar: 1 to 3 clauses "the NOUN was [very|not] ADJ" joined by "and", then EOS, and
+    as people write, no clause twice. A policy may write more clauses, or repeat one: the gold reward judges both, and
+    the reward model has seen neither."""
+    clauses = []
+    while len(clauses) < 3:
         modifier = rng.choice(["", "", "very", "not"])
-        words += ["and" if clause else "", "the", rng.choice(NOUNS), "was", modifier, rng.choice(list(VALENCE))]
+        words = ["the", rng.choice(NOUNS), "was", modifier, rng.choice(list(VALENCE))]
+        clause = " ".join(word for word in words if word)
+        if clause in clauses:
+            continue
+        clauses.append(clause)
         if rng.random() < 0.5:
             break
-    return [word for word in words if word] + ["<eos>"]
+    return " and ".join(clauses).split() + ["<eos>"]
 
 
 def parse_review(text):
-    """The gold value of a review, the sum of its clauses' valences (x2 after "very", x-1 after "not"), or None if it
-    is not well formed.
+    """The gold value of a review as a reader judges it, or None if it is not well formed: the sum of its clauses'
+    valences (x2 after "very", x-1 after "not"), unless it says a clause twice word for word. A reader takes praise
+    that repeats itself for spam, and scores it as garbled text.
 
     >>> parse_review("the film was very good and the plot was not bad <eos>"), parse_review("the film was <eos>")
     (6, None)
+    >>> parse_review("the film was good and the film was good <eos>")
+    -6.0
     """
     if not re.fullmatch(rf"{CLAUSE}( and {CLAUSE})* <eos>", text):
         return None
-    return sum(MODIFIERS.get(modifier, 1) * VALENCE[adjective] for _, modifier, adjective in re.findall(CLAUSE, text))
+    clauses = re.findall(CLAUSE, text)
+    if len(set(clauses)) < len(clauses):
+        return GOLD_PENALTY
+    return sum(MODIFIERS.get(modifier, 1) * VALENCE[adjective] for _, modifier, adjective in clauses)
 
 
 def gold_scores(tokens, mask):
@@ -188,10 +222,12 @@ def gold_scores(tokens, mask):
 
 
 @torch.no_grad()
-def generate(lm, n, response_length, temperature):
-    """n prompts "<bos> the NOUN" and responses from lm: sequences [n, P + response_length] with PAD after the first
-    EOS, and their mask, 1 on the response up to and including its first EOS (on all of it if it has none)."""
+def generate(lm, n, response_length, temperature, group_size=1):
+    """n prompts "<bos> the NOUN", each repeated group_size times, and responses from lm: sequences [n * group_size,
+    P + response_length] with PAD after the first EOS, and their mask, 1 on the response up to and including its
+    first EOS (on all of it if it has none)."""
     nouns = torch.randint(len(NOUNS), (n, 1), device=lm.lm_head.weight.device) + TOKEN[NOUNS[0]]
+    nouns = nouns.repeat_interleave(group_size, 0)
     tokens = torch.cat([torch.full_like(nouns, BOS), torch.full_like(nouns, TOKEN["the"]), nouns], 1)
     for _ in range(response_length):
         logits = lm(tokens)[0][:, -1] / temperature
@@ -261,13 +297,6 @@ def response_dist(logits, temperature):
 
 
 # TRAINING
-# How a run ends early: stopped by SIGINT or SIGTERM, after saving what it could; or diverged, no longer finite.
-class Stopped(Exception): ...
-
-
-class Diverged(Exception): ...
-
-
 def report(stage, done, total, start, text, first=0):
     """A progress line at each tenth of a stage and at its end, with the stage's ETA."""
     if done % max(total // 10, 1) == 0 or done == total:
@@ -351,9 +380,12 @@ def train_reward_model(args, sft, run_dir, device, stop):
 
 
 @torch.no_grad()
-def rollout(agent, reference, reward_model, n, args):
-    """Sample a response to each prompt from pi_theta_old, and gather what PPO needs as a dict of [B, ...] tensors."""
-    tokens, mask = generate(agent.policy, n, args.response_length, args.temperature)
+def rollout(agent, reference, reward_model, args):
+    """Sample a response to each prompt from pi_theta_old (--group-size of them with GRPO), and gather what PPO needs
+    as a dict of [B, ...] tensors."""
+    group_size = args.group_size if args.advantage == "grpo" else 1
+    n = args.batch_size // group_size
+    tokens, mask = generate(agent.policy, n, args.response_length, args.temperature, group_size)
     responses = tokens[:, PROMPT_LENGTH:]
     logits, values = agent(tokens)
     # The log-probs are recomputed as the tokens were sampled, at the same temperature: the ratio starts at 1.
@@ -367,6 +399,17 @@ def rollout(agent, reference, reward_model, n, args):
     return batch | {"gold": gold, "well_formed": well_formed, "has_eos": has_eos.float(), "entropy": dist.entropy()}
 
 
+def response_stats(batch):
+    """What a batch of responses shows: its scores, its KL to pi_SFT (per response, in nats), and its form."""
+    mask = batch["mask"]
+    stats = {"score": batch["scores"].mean(), "gold_score": batch["gold"].mean()}
+    stats["kl"] = ((batch["logprobs"] - batch["ref_logprobs"]) * mask).sum(1).mean()
+    stats |= {"entropy": masked_mean(batch["entropy"], mask), "well_formed": batch["well_formed"].mean()}
+    stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
+    stats["rm_accuracy"] = pairwise_accuracy(batch["scores"], batch["gold"])
+    return {f"rlhf/{name}": value.item() for name, value in stats.items()}
+
+
 def ppo_update(agent, optimizer, mb, args):
     """A minibatch step on minus L^CLIP + c1 L^VF (eq. (9) without its entropy bonus), over the masked tokens only."""
     mask = mb["mask"]
@@ -376,8 +419,9 @@ def ppo_update(agent, optimizer, mb, args):
     logratio = (dist.log_prob(mb["responses"]) - mb["logprobs"]) * mask
     ratio = logratio.exp()  # r_t(theta), paper eq. (6)
     pg_loss = clipped_surrogate_loss(ratio, mb["advantages"], args.clip_coef, mask)
-    v_loss = value_loss(newvalues[:, PROMPT_LENGTH - 1 : -1], mb["values"], mb["returns"], args.clip_coef, True, mask)
-    loss = pg_loss + args.vf_coef * v_loss
+    v_loss = value_loss(newvalues[:, PROMPT_LENGTH - 1 : -1], mb["values"], mb["returns"], args.clip_coef, mask)
+    # GRPO has no critic to fit: its loss is L^CLIP alone.
+    loss = pg_loss + args.vf_coef * v_loss if args.advantage == "gae" else pg_loss
     optimizer.zero_grad()
     loss.backward()
     nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)  # core detail 11
@@ -392,7 +436,8 @@ def ppo_update(agent, optimizer, mb, args):
 def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer):
     """Stage 3: PPO-Clip, with the rewards of compute_rewards: the RM's score and the KL penalty to pi_SFT."""
     reference = sft.requires_grad_(False)  # pi_SFT, frozen
-    agent = Agent(sft, reward_model.requires_grad_(False), args.value_model).requires_grad_(True)
+    value_model = args.value_model if args.advantage == "gae" else "policy-head"  # GRPO trains no value function
+    agent = Agent(sft, reward_model.requires_grad_(False), value_model).requires_grad_(True)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)  # core detail 3
     num_iterations = args.total_episodes // args.batch_size
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
@@ -412,31 +457,34 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
     # ALGORITHM 1, with prompts for actors: for iteration = 1, 2, ...
     for iteration in range(start_iteration, num_iterations + 1):
         # ROLLOUT: a response to each prompt from pi_theta_old, scored by the reward model.
-        batch = rollout(agent, reference, reward_model, args.batch_size, args)
+        batch = rollout(agent, reference, reward_model, args)
         global_step = iteration * args.batch_size
 
         # REWARDS AND ADVANTAGES: the KL penalty at every token and the score at the EOS, then GAE over tokens.
         mask = batch["mask"]
         rewards = compute_rewards(batch["scores"], batch["logprobs"], batch["ref_logprobs"], mask, kl_coef)
-        advantages, batch["returns"] = compute_gae(rewards, batch["values"], mask, args.gamma, args.gae_lambda)
-        # Whitened once over all the batch's tokens, as Ziegler et al.'s code does, not per minibatch (core detail 7).
-        mean = masked_mean(advantages, mask)
-        std = masked_mean((advantages - mean) ** 2, mask).sqrt()
-        batch["advantages"] = (advantages - mean) / (std + 1e-8) * mask
+        if args.advantage == "gae":
+            advantages, batch["returns"] = compute_gae(rewards, batch["values"], mask, args.gamma, args.gae_lambda)
+            # Whitened once over the batch's tokens; Ziegler et al.'s code, like core detail 7, whitens each minibatch.
+            mean = masked_mean(advantages, mask)
+            std = masked_mean((advantages - mean) ** 2, mask).sqrt()
+            batch["advantages"] = (advantages - mean) / (std + 1e-8) * mask
+        else:  # GRPO: the group's statistics stand in for the critic; no value function is fitted
+            batch["advantages"] = group_advantages(rewards, mask, args.group_size)
+            batch["returns"] = batch["values"]
 
         # UPDATE: K epochs of minibatch gradient descent, a new shuffle each epoch (core detail 6).
         update_stats = []
         for _ in range(args.update_epochs):
-            b_inds = torch.randperm(args.batch_size, device=device)
-            for start in range(0, args.batch_size, args.minibatch_size):
-                mb_inds = b_inds[start : start + args.minibatch_size]
+            for mb_inds in torch.randperm(args.batch_size, device=device).split(args.minibatch_size):
                 update_stats.append(update(agent, optimizer, {k: v[mb_inds] for k, v in batch.items()}, args))
 
         # LOGGING: the mean over every minibatch of the update, and what the rollout's responses show.
         losses = {name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]}
-        returns = batch["returns"][mask.bool()]
-        losses["explained_variance"] = (1 - (returns - batch["values"][mask.bool()]).var() / returns.var()).item()
-        stats = evaluate(batch)
+        if args.advantage == "gae":
+            returns = batch["returns"][mask.bool()]
+            losses["explained_variance"] = (1 - (returns - batch["values"][mask.bool()]).var() / returns.var()).item()
+        stats = response_stats(batch)
         sps = (iteration - start_iteration + 1) * args.batch_size / (time.time() - start_time)
         scalars = {f"losses/{name}": value for name, value in losses.items()} | stats
         scalars |= {"rlhf/kl_coef": kl_coef, "charts/SPS": sps, "charts/episodic_length": stats["rlhf/response_length"]}
@@ -453,8 +501,10 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
             raise Diverged(f"loss or weights not finite after iteration {iteration}; try a smaller --learning-rate")
         if stop or iteration % args.save_every == 0 or iteration == num_iterations:
-            for tokens, score, gold in zip(batch["tokens"][:3].tolist(), batch["scores"], batch["gold"], strict=False):
-                print(f"  score {score:+.2f} | gold {gold:+3.0f} |", *(WORDS[t] for t in tokens if t not in (PAD, BOS)))
+            # The responses the reward model scores highest, which the policy is pulled toward, beside their gold.
+            for i in batch["scores"].argsort(descending=True)[:3].tolist():
+                text = " ".join(WORDS[t] for t in batch["tokens"][i].tolist() if t not in (PAD, BOS))
+                print(f"  score {batch['scores'][i]:+.2f} | gold {batch['gold'][i]:+3.0f} | {text}")
             writer.flush()  # the curve on disk reaches at least the checkpoint's step
             state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "kl_coef": kl_coef}
             state |= {"reference": reference.state_dict(), "reward_model": reward_model.state_dict()}
@@ -466,8 +516,9 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
     return agent, run_dir
 
 
-def train(args):
-    """Stages 1 to 3, each skipped where a checkpoint holds it; returns (agent, run_dir) or raises Stopped, Diverged."""
+def train(args, stop=()):
+    """Stages 1 to 3, each skipped where a checkpoint holds it; returns (agent, run_dir) or raises Stopped, Diverged.
+    Each stage checks `stop` after each step, and stops, saved, once it is non-empty."""
     from torch.utils.tensorboard import SummaryWriter
 
     checkpoint = load_checkpoint(args.resume) if args.resume else None
@@ -476,40 +527,26 @@ def train(args):
         args = Args(**{**checkpoint["args"], **runtime, "run_dir": os.path.dirname(os.path.abspath(args.resume))})
     run_dir = args.run_dir or f"runs/reviews__{args.exp_name}__{args.seed}__{int(time.time())}"
     device = torch.device("cpu" if args.device == "auto" else args.device)
-    previous_threads = torch.get_num_threads()
-    stop = []
-    # Ctrl-C and SIGTERM (say, a job scheduler's stop) only set a flag, which each stage checks after each step.
-    handlers = {sig: signal.signal(sig, lambda *_: stop.append(True)) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        torch.set_num_threads(args.torch_threads)
-        if checkpoint:  # a resumed stage 3: stages 1 and 2 are in its checkpoint
-            sft = new_model(args, device, checkpoint["reference"])
-            reward_model = new_model(args, device, checkpoint["reward_model"])
-        else:
-            os.makedirs(run_dir, exist_ok=True)
-            sft = train_sft(args, run_dir, device, stop)
-            reward_model = train_reward_model(args, sft, run_dir, device, stop)
-        # On --resume, purge_step drops what the run logged after its checkpoint: its curves go on without a fold.
-        with SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1 if checkpoint else None) as writer:
-            return train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer)
-    finally:  # on every exit, errors included, the process is left as it was
-        for sig, handler in handlers.items():
-            signal.signal(sig, handler)
-        torch.set_num_threads(previous_threads)
+    if checkpoint:  # a resumed stage 3: stages 1 and 2 are in its checkpoint
+        sft = new_model(args, device, checkpoint["reference"])
+        reward_model = new_model(args, device, checkpoint["reward_model"])
+    else:
+        os.makedirs(run_dir, exist_ok=True)
+        sft = train_sft(args, run_dir, device, stop)
+        reward_model = train_reward_model(args, sft, run_dir, device, stop)
+    # On --resume, purge_step drops what the run logged after its checkpoint: its curves go on without a fold.
+    with SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1 if checkpoint else None) as writer:
+        return train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer)
 
 
-# EVALUATION
-def evaluate(batch):
-    """What a batch of responses shows: its scores, its KL to pi_SFT (per response, in nats), and its form."""
-    mask = batch["mask"]
-    stats = {"score": batch["scores"].mean(), "gold_score": batch["gold"].mean()}
-    stats["kl"] = ((batch["logprobs"] - batch["ref_logprobs"]) * mask).sum(1).mean()
-    stats |= {"entropy": masked_mean(batch["entropy"], mask), "well_formed": batch["well_formed"].mean()}
-    stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
-    return {f"rlhf/{name}": value.item() for name, value in stats.items()}
+# MACHINERY: how a run ends early, checkpoints, argument checks and the command line.
+# Stopped by Ctrl-C or SIGTERM, after saving what it could; or Diverged, with the last finite checkpoint kept.
+class Stopped(Exception): ...
 
 
-# MACHINERY: checkpoints and argument checks
+class Diverged(Exception): ...
+
+
 RUNTIME_FIELDS = ("device", "compile", "torch_threads", "save_every", "resume")
 FORMAT = "ppo-checkpoint-v1"
 
@@ -537,7 +574,9 @@ def load_checkpoint(path, stage="ppo"):
 
 # Every number must be positive, except these, which have ranges of their own.
 RANGES = {"seed": (-math.inf, math.inf), "no_eos_score": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
-RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "response_length": (1, BLOCK_SIZE - PROMPT_LENGTH)}
+# The shortest review's response, "was ADJ <eos>", is 3 tokens; 100 comparisons hold out 10 to measure the RM with.
+RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "response_length": (3, BLOCK_SIZE - PROMPT_LENGTH)}
+RANGES |= {"rm_pairs": (100, math.inf), "group_size": (2, math.inf)}
 
 
 def check_args(args):
@@ -553,9 +592,12 @@ def check_args(args):
             raise ValueError(f"{flag(name)} must be positive, got {value}")
         if not low <= value <= high:
             raise ValueError(f"{flag(name)} must be in [{low}, {high}], got {value}")
-    for name, whole in (("n_head", "d_model"), ("minibatch_size", "batch_size")):
+    grpo = [("group_size", "batch_size")] if args.advantage == "grpo" else []
+    for name, whole in [("n_head", "d_model"), ("minibatch_size", "batch_size"), *grpo]:
         if getattr(args, whole) % getattr(args, name):
             raise ValueError(f"{flag(name)} {getattr(args, name)} does not divide {flag(whole)} {getattr(args, whole)}")
+    if args.adaptive_kl and args.kl_coef == 0:
+        raise ValueError("--adaptive-kl needs a positive --kl-coef to start from: it scales beta, and 0 stays 0")
     if args.resume is None and args.total_episodes < args.batch_size:
         raise ValueError(f"--total-episodes {args.total_episodes} is less than one batch of {args.batch_size}")
     if args.device not in ("auto", "cpu") and not (args.device.startswith("cuda") and torch.cuda.is_available()):
@@ -586,8 +628,13 @@ def main():
     except ValueError as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts
         sys.exit(2)
+    torch.set_num_threads(args.torch_threads)
+    # A run owns the process: Ctrl-C and SIGTERM only set the flag that each stage reads after each step.
+    stop = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: stop.append(signum))
     try:
-        train(args)
+        train(args, stop)
     except Stopped as e:
         print(e, flush=True)
         sys.exit(130)

@@ -80,7 +80,17 @@ def read_run(run_dir):
 
 
 # ppo_rlhf.py's rlhf/* scalars, kept per iteration beside a run's CSV (<suite>/rlhf/).
-RLHF_STATS = ("score", "gold_score", "kl", "kl_coef", "entropy", "response_length", "eos_fraction", "well_formed")
+RLHF_STATS = (
+    "score",
+    "gold_score",
+    "kl",
+    "kl_coef",
+    "entropy",
+    "response_length",
+    "eos_fraction",
+    "well_formed",
+    "rm_accuracy",
+)
 
 
 def read_rlhf(run_dir):

@@ -157,9 +157,10 @@ SUITES = {
             "sb3": (["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4"], [1, 2, 3]),
         },
     ),
-    # RLHF (issue 29): beta of the KL penalty to pi_SFT fixed at 0 (no leash), 0.01, 0.05 (the default) and 0.2, or
-    # adapted by Ziegler et al.'s controller toward 2 nats from 0.05. "reviews" is the script's own language, not an
-    # env; the budget is in responses. Each run trains its own stages 1 and 2, which depend only on the seed.
+    # RLHF (issues 29, 40): beta of the KL penalty to pi_SFT fixed at 0 (no leash), 0.01, 0.05 (the default) and 0.2,
+    # or adapted by Ziegler et al.'s controller toward 2 nats from 0.05; and GRPO's advantage in place of GAE.
+    # "reviews" is the script's own language, not an env; the budget is in responses. Each run trains its own stages 1
+    # and 2, which depend only on the seed.
     "rlhf": Suite(
         {
             "beta0": ("ppo_rlhf.py", ["--kl-coef", "0"]),
@@ -167,11 +168,13 @@ SUITES = {
             "beta0.05": ("ppo_rlhf.py", []),
             "beta0.2": ("ppo_rlhf.py", ["--kl-coef", "0.2"]),
             "adaptive": ("ppo_rlhf.py", ["--adaptive-kl"]),
+            "grpo": ("ppo_rlhf.py", ["--advantage", "grpo"]),
         },
         ["reviews"],
         [1, 2, 3],
         12_800,
-        "ppo_rlhf.py with beta 0, 0.01, 0.05 (its default) and 0.2, and the adaptive controller toward 2 nats",
+        "ppo_rlhf.py with beta 0, 0.01, 0.05 (its default) and 0.2, the adaptive controller toward 2 nats, and GRPO's"
+        " advantage at beta 0.05",
         env_flag=None,
         budget_flag="--total-episodes",
     ),
@@ -391,6 +394,16 @@ def write_series(path, columns, rows):
     path.write_text("\n".join(lines) + "\n")
 
 
+def held_out_accuracy(job):
+    """ppo_rlhf.py: how often its reward model ranked held-out pairs of pi_SFT's responses as gold does, else None."""
+    path = job.run_dir / "reward_model.pt"
+    if not path.exists():
+        return None
+    import torch
+
+    return torch.load(path, map_location="cpu", weights_only=True)["held_out_accuracy"]
+
+
 def finish(job):
     """Turn a finished run directory into its CSV."""
     checkpoint, rows, beta, series, updates = read_run(job.run_dir)
@@ -429,6 +442,7 @@ def finish(job):
         ("wall_time_s", f"{wall:.0f}"),
         ("attempts", len(attempts)),
         *([("beta_range", beta)] if beta else []),
+        *([("rm_held_out_accuracy", f"{rm_accuracy:.4f}")] if (rm_accuracy := held_out_accuracy(job)) else []),
     ]
     if series:  # beta after each update, for the report's plot of it
         write_series(job.results_dir / "beta" / f"{job.name}.csv", ("beta", "kl"), series)

@@ -118,11 +118,60 @@ def test_bradley_terry_loss_by_hand():
     assert rlhf.preference_loss(chosen, rejected).item() == pytest.approx(by_hand, rel=1e-6)
 
 
+def reference_group_advantages(rewards, mask, group_size):
+    """GRPO's advantage, a response at a time: its summed reward against its group's mean and (n - 1) std."""
+    out = np.zeros_like(rewards)
+    returns = rewards.sum(1)
+    for i in range(len(rewards)):
+        group = returns[i // group_size * group_size : (i // group_size + 1) * group_size]
+        out[i] = (returns[i] - group.mean()) / (group.std(ddof=1) + 1e-8) * mask[i]
+    return out
+
+
+@pytest.mark.parametrize("group_size", [2, 4])
+def test_group_advantages_match_a_loop_over_responses(group_size):
+    rng = np.random.default_rng(group_size)
+    mask = masks_with_a_row_without_eos(rng, 8, 6)
+    rewards = rng.normal(size=(8, 6)) * mask
+    advantages = rlhf.group_advantages(*t64(rewards, mask), group_size)
+    np.testing.assert_allclose(advantages.numpy(), reference_group_advantages(rewards, mask, group_size), atol=1e-9)
+    # A group whose responses all earn the same reward teaches nothing: its advantages are 0.
+    same = rlhf.group_advantages(torch.ones(4, 3), torch.ones(4, 3), 4)
+    assert torch.equal(same, torch.zeros(4, 3))
+
+
+def test_pairwise_accuracy_matches_a_loop_over_pairs():
+    rng = np.random.default_rng(3)
+    scores, gold = rng.normal(size=12), rng.integers(-2, 3, size=12).astype(float)
+    pairs = [(i, j) for i in range(12) for j in range(12) if gold[i] > gold[j]]
+    expected = sum(scores[i] > scores[j] for i, j in pairs) / len(pairs)
+    assert rlhf.pairwise_accuracy(*t64(scores, gold)).item() == pytest.approx(expected)
+    assert rlhf.pairwise_accuracy(*t64(-scores, gold)).item() == pytest.approx(1 - expected)  # no ties in scores
+    assert torch.isnan(rlhf.pairwise_accuracy(torch.ones(3), torch.ones(3))), "no pair of different gold"
+
+
+def test_grpo_groups_share_a_prompt_and_fit_no_value_function():
+    torch.manual_seed(0)
+    sft, reward_model = rlhf.TinyLM(16, 1, 2), rlhf.TinyLM(16, 1, 2)
+    args = rlhf.Args(response_length=12, batch_size=16, advantage="grpo", group_size=4)
+    agent = rlhf.Agent(sft, reward_model, "policy-head")
+    batch = rlhf.rollout(agent, sft, reward_model, args)
+    prompts = batch["tokens"][:, : rlhf.PROMPT_LENGTH].view(4, 4, -1)
+    assert torch.equal(prompts, prompts[:, :1].expand_as(prompts)), "a group answers one prompt"
+    assert len({tuple(p) for p in prompts[:, 0].tolist()}) > 1, "the groups' prompts are drawn anew"
+    rewards = rlhf.compute_rewards(batch["scores"], batch["logprobs"], batch["ref_logprobs"], batch["mask"], 0.05)
+    batch["advantages"] = rlhf.group_advantages(rewards, batch["mask"], 4)
+    batch["returns"] = batch["values"] + 100.0  # a value loss would be large: GRPO's loss must not contain it
+    stats = rlhf.ppo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), batch, args)
+    assert stats["loss"].item() == pytest.approx(stats["policy_loss"].item())
+    assert stats["value_loss"].item() > 1000
+
+
 def test_losses_are_means_over_the_masked_tokens_only():
     ratio, adv, mask = torch.tensor([1.5, 0.5, 9.0]), torch.tensor([1.0, 1.0, 5.0]), torch.tensor([1.0, 1.0, 0.0])
     assert rlhf.clipped_surrogate_loss(ratio, adv, 0.2, mask).item() == pytest.approx(-(1.2 + 0.5) / 2)
     new, old, ret = torch.tensor([1.0, 3.0, 50.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])
-    assert rlhf.value_loss(new, old, ret, 10.0, True, mask).item() == pytest.approx((1.0 + 4.0) / 2)
+    assert rlhf.value_loss(new, old, ret, 10.0, mask).item() == pytest.approx((1.0 + 4.0) / 2)
 
 
 # THE LANGUAGE
@@ -155,8 +204,8 @@ def a_batch(value_model="reward-model", seed=0):
     sft = rlhf.TinyLM(16, 1, 2)
     reward_model = rlhf.TinyLM(16, 1, 2)
     agent = rlhf.Agent(sft, reward_model, value_model)
-    args = rlhf.Args(response_length=12)
-    batch = rlhf.rollout(agent, sft, reward_model, 16, args)
+    args = rlhf.Args(response_length=12, batch_size=16)
+    batch = rlhf.rollout(agent, sft, reward_model, args)
     rewards = rlhf.compute_rewards(batch["scores"], batch["logprobs"], batch["ref_logprobs"], batch["mask"], 0.05)
     batch["advantages"], batch["returns"] = rlhf.compute_gae(rewards, batch["values"], batch["mask"], 1.0, 0.95)
     return agent, batch, args
@@ -287,7 +336,12 @@ BAD_INPUTS = [
     (["--total-episodes", "32"], "less than one batch of 64"),
     (["--minibatch-size", "48"], "--minibatch-size 48 does not divide --batch-size 64"),
     (["--n-head", "3"], "--n-head 3 does not divide --d-model 64"),
-    (["--response-length", "30"], "--response-length must be in [1, 29]"),
+    (["--response-length", "30"], "--response-length must be in [3, 29]"),
+    (["--response-length", "1"], "--response-length must be in [3, 29]"),
+    (["--rm-pairs", "2"], "--rm-pairs must be in [100, inf]"),
+    (["--adaptive-kl", "--kl-coef", "0"], "--adaptive-kl needs a positive --kl-coef"),
+    (["--advantage", "grpo", "--group-size", "7"], "--group-size 7 does not divide --batch-size 64"),
+    (["--advantage", "grpo", "--group-size", "1"], "--group-size must be in [2, inf]"),
     (["--value-model", "both"], "invalid choice"),
     (["--device", "tpu"], "--device tpu is not available"),
     (["--run-dir", "afile"], "is a file"),
