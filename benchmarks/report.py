@@ -26,7 +26,7 @@ import re
 import statistics
 import sys
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -595,6 +595,10 @@ def report(folder, reference=None, results=RESULTS):
         raise ValueError(f"{folder} has no run CSVs")
     if suite_name(folder) == "rlhf":
         return rlhf_report(folder, runs)
+    if suite_name(folder) == "figure3":
+        text = figure3_markdown(folder, results)
+        (folder / "report.md").write_text(text)
+        return text
     reference = reference if reference is not None else load_reference()
     kind = suite_kind(folder)
     variants = ordered_variants(suite_name(folder), runs)
@@ -626,6 +630,175 @@ def report(folder, reference=None, results=RESULTS):
     text = "\n".join(lines) + "\n"
     (folder / "report.md").write_text(text)
     return text
+
+
+# The paper's Figure 3 (issue 41): PPO is the mujoco suite's default runs, the peers are the figure3 suite's.
+FIGURE3_NAMES = {"ppo": "PPO (ours)", "a2c": "A2C (SB3)", "trpo": "TRPO (sb3-contrib)"}
+FIGURE3_MISSING = (
+    "Not reproduced: the paper's Figure 3 also has CEM, vanilla policy gradient with an adaptive step size, and A2C"
+    " with a trust region. No maintained library we can install has them, and benchmarks/reference_figures.csv has"
+    " no figures for them: the paper gives its curves as plots only."
+)
+
+
+def figure3_runs(folder, results=RESULTS):
+    """The peers' runs in `folder`, and PPO's: the mujoco suite's runs of ppo_continuous.py at its defaults."""
+    mujoco = Path(results) / "mujoco"
+    ppo = [replace(r, variant="ppo") for r in load_runs(mujoco) if r.variant == "clip0.2"] if mujoco.is_dir() else []
+    from run import SUITES
+
+    tasks = set(SUITES["figure3"].envs) | {r.env_id for r in load_runs(folder)}
+    return [r for r in ppo if r.env_id in tasks] + load_runs(folder)
+
+
+def figure3_verdict(runs):
+    """Per peer, the tasks on which PPO is ahead by more than 2 standard errors over the last 100 episodes, behind
+    by more than 2, within 2, or not yet comparable (fewer than 2 seeds a side): a line of words."""
+    by_env, parts = group(runs), []
+    for peer in [v for v in FIGURE3_NAMES if v != "ppo" and any(r.variant == v for r in runs)]:
+        counts = {"ahead": [], "behind": [], "within 2 standard errors": [], "not comparable yet": []}
+        for env in sorted(by_env):
+            diff = difference(
+                [r.score for r in by_env[env].get("ppo", [])], [r.score for r in by_env[env].get(peer, [])]
+            )
+            key = "not comparable yet" if diff is None else "within 2 standard errors"
+            if diff is not None and abs(diff[0]) > 2 * diff[1]:
+                key = "ahead" if diff[0] > 0 else "behind"
+            counts[key].append(env_base(env))
+        words = [f"{key} on {len(envs)} ({', '.join(envs)})" for key, envs in counts.items() if envs]
+        parts.append(f"against {FIGURE3_NAMES[peer]}, PPO is " + "; ".join(words))
+    return (
+        f"**Over the last 100 episodes, of {len(by_env)} tasks:** " + ". And ".join(parts) + "."
+        " Ahead or behind means by more than 2 standard errors of the difference, sqrt(s1²/n1 + s2²/n2); a task is"
+        " not comparable until both sides have 2 seeds."
+    )
+
+
+def figure3_tables(runs, level="##"):
+    """Per task, each algorithm's two scores (the paper's two metrics) and PPO's difference from each peer."""
+    by_env = group(runs)
+    lines = [
+        f"{level} Scores per task",
+        "",
+        "Each algorithm's mean ± std over seeds (n) of the mean return of the last 100 episodes, and of every"
+        " episode of training; PPO's difference from each peer ± its standard error, **bold** beyond 2.",
+        "",
+        "| task | algorithm | last 100 (n) | all training (n) | PPO minus it: last 100 | PPO minus it: all training |",
+        "|---|---|---|---|---|---|",
+    ]
+    for env in sorted(by_env):
+        ppo = by_env[env].get("ppo", [])
+        for variant in [v for v in FIGURE3_NAMES if v in by_env[env]]:
+            these = by_env[env][variant]
+            last, whole = [r.score for r in these], [mean_return(r.rows) for r in these]
+            cells = [f"{fmt(*mean_std(last))} ({len(last)})", f"{fmt(*mean_std(whole))} ({len(whole)})"]
+            if variant == "ppo":
+                cells += ["", ""]
+            else:
+                cells += [
+                    fmt_difference([r.score for r in ppo], last),
+                    fmt_difference([mean_return(r.rows) for r in ppo], whole),
+                ]
+            lines.append(f"| {env} | {FIGURE3_NAMES[variant]} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def figure3_sources(runs):
+    """Which RL Zoo entry each peer ran with, per task, from its CSVs' headers."""
+    lines = ["| task | " + " | ".join(FIGURE3_NAMES[v] for v in ("a2c", "trpo")) + " |", "|---|---|---|"]
+    for env in sorted({r.env_id for r in runs}):
+        cells = []
+        for variant in ("a2c", "trpo"):
+            found = sorted(
+                {r.meta.get("hyperparameters", "not recorded") for r in runs if (r.env_id, r.variant) == (env, variant)}
+            )
+            cells.append("; ".join(found) or "not run yet")
+        lines.append(f"| {env} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def figure3_markdown(folder, results=RESULTS):
+    """<folder>/report.md of the figure3 suite, with <folder>/curves/figure3.png drawn beside it."""
+    runs = figure3_runs(folder, results)
+    peers = [r for r in runs if r.variant != "ppo"]
+    plot_figure3(folder, runs)
+    lines = [
+        f"# {folder.name}: the paper's Figure 3, PPO against A2C and TRPO",
+        "",
+        "Generated by `benchmarks/report.py` from the CSVs in this folder and PPO's in `../mujoco/`; do not edit by"
+        " hand.",
+        SCORE_RULE + " " + MUJOCO_VERSIONS,
+        "",
+        "The peers (`benchmarks/sb3_mujoco.py`):",
+        *provenance(peers),
+        "",
+        "PPO (`ppo_continuous.py` at its defaults, the mujoco suite's runs):",
+        *provenance([r for r in runs if r.variant == "ppo"]),
+        "",
+        figure3_verdict(runs),
+        "",
+        "![Figure 3](curves/figure3.png)",
+        "",
+        *figure3_tables(runs),
+        "",
+        "## The peers' hyperparameters",
+        "",
+        "Each peer runs with the RL Zoo's hyperparameters for its algorithm and task, read from the rl_zoo3 package's"
+        " own files; the Zoo tuned its MuJoCo entries on gym's -v4 tasks, and a -v5 task takes its -v4 entry. Where"
+        " the Zoo has no entry, its `default` entry: SB3's defaults.",
+        "",
+        *figure3_sources(peers),
+        "",
+        FIGURE3_MISSING,
+        "",
+        "## Every run",
+        "",
+        *run_table(runs),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def plot_figure3(folder, runs):
+    """<folder>/curves/figure3.png laid out as the paper's Figure 3: a panel per task, the mean over seeds of the
+    last-100-episode return against steps, each algorithm a line with a ± std band, the x axis to 1M."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    envs = sorted({r.env_id for r in runs})
+    cols = 4
+    fig, axes = plt.subplots(
+        math.ceil(len(envs) / cols), cols, figsize=(3.3 * cols, 2.7 * math.ceil(len(envs) / cols)), squeeze=False
+    )
+    total = max(int(r.meta["global_step"]) for r in runs)
+    grid = np.linspace(0, total, 101)[1:]
+    for ax, env in zip(axes.flat, envs, strict=False):
+        for color, variant in enumerate(FIGURE3_NAMES):  # one color an algorithm, in every panel
+            if not any((r.env_id, r.variant) == (env, variant) for r in runs):
+                continue
+            curves = np.array([curve(r.rows, grid) for r in runs if (r.env_id, r.variant) == (env, variant)])
+            with warnings.catch_warnings():  # before any seed's first episode ends, the mean is nan
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean, std = np.nanmean(curves, axis=0), np.nanstd(curves, axis=0)
+            ax.plot(grid, mean, lw=1.2, color=f"C{color}", label=f"{FIGURE3_NAMES[variant]} ({len(curves)})")
+            ax.fill_between(grid, mean - std, mean + std, color=f"C{color}", alpha=0.2, lw=0)
+        ax.set_title(env, fontsize=9)
+        ax.set_xlim(0, total)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, loc="best")
+    for ax in list(axes.flat)[len(envs) :]:
+        ax.axis("off")
+    fig.supxlabel("environment steps", fontsize=8)
+    fig.supylabel("return, mean of last 100 episodes", fontsize=8)
+    fig.tight_layout()
+    out = Path(folder) / "curves" / "figure3.png"
+    out.parent.mkdir(exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
 
 
 # ppo_rlhf.py's suite: what its table shows of each run, the mean over the last tenth of its iterations.
@@ -891,6 +1064,9 @@ def readme_block(results=RESULTS, reference=None, full=False):
     for folder in suite_folders(results):
         if suite_name(folder) == "rlhf":  # not a table of returns: its report.md has its own
             continue
+        if suite_name(folder) == "figure3":  # PPO against its peers: the verdict and the figure, the tables in full
+            lines += figure3_block(folder, results, full)
+            continue
         runs = load_runs(folder)
         if not full and suite_kind(folder) == "atari":  # ours and the peer; the single arms: the report
             runs = [r for r in runs if r.variant in README_ATARI_VARIANTS]
@@ -928,6 +1104,23 @@ def readme_block(results=RESULTS, reference=None, full=False):
                 table = table[: comparison[0] - 1]
             lines += ["", f"**{heading}** ([report]({rel}/report.md))", "", *table]
     return "\n".join(lines + ["", README_END])
+
+
+def figure3_block(folder, results, full):
+    """The README's lines on the paper's Figure 3: the verdict and the figure; in full, the tables too."""
+    rel = (
+        folder.relative_to(ROOT / ("benchmarks" if full else "")).as_posix()
+        if folder.is_relative_to(ROOT)
+        else folder.name
+    )
+    runs = figure3_runs(folder, results)
+    peers = [r for r in runs if r.variant != "ppo"]
+    seeds = ", ".join(map(str, sorted({r.seed for r in peers})))
+    count = f"{len(peers)} peer run{'s' if len(peers) != 1 else ''}"
+    heading = f"`{folder.name}`: PPO against A2C and TRPO, the paper's Figure 3 ({count}, seeds {seeds})"
+    lines = ["", f"{'### ' if full else '**'}{heading}{'' if full else '**'} ([report]({rel}/report.md))", ""]
+    lines += [figure3_verdict(runs), "", f'<img src="{rel}/curves/figure3.png" width="{100 if full else 80}%">']
+    return lines + (["", *figure3_tables(runs, level="####"), "", FIGURE3_MISSING] if full else [])
 
 
 # The envs of our Table 1 (issue 12): four of the paper's seven, for compute.

@@ -755,6 +755,9 @@ def test_readme_results_block_is_generated_from_the_committed_csvs(path, full):
         assert readme[start:end] == report.rlhf_block(), "run python benchmarks/report.py"
     for folder in report.suite_folders():
         assert (folder / "report.md").exists()
+        if report.suite_name(folder) == "figure3":  # one figure, a panel per task
+            assert (folder / "curves" / "figure3.png").exists()
+            continue
         for env in {r.env_id for r in report.load_runs(folder)}:
             assert (folder / "curves" / f"{env}.png").exists(), (folder, env)
 
@@ -826,3 +829,44 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
     # Tenths count from the end, so that the last is the last tenth of the iterations, as report.md's table takes it.
     series = np.arange(25.0)[:, None].repeat(1 + len(run.RLHF_STATS), axis=1)
     assert report.tenths(series, "score")[-1] == (23 + 24) / 2
+
+
+def test_the_committed_figure3_report_is_what_report_py_makes_of_the_csvs(tmp_path):
+    """benchmarks/results/figure3/report.md is generated: stale after a CSV lands until report.py runs again."""
+    folder = report.RESULTS / "figure3"
+    if not any(report.run_files(folder)):
+        pytest.skip("no figure3 run is committed yet")
+    copy = tmp_path / "figure3"
+    copy.mkdir()
+    for _, _, _, path in report.run_files(folder):
+        (copy / path.name).write_bytes(path.read_bytes())
+    assert (folder / "report.md").read_text() == report.figure3_markdown(copy), "run python benchmarks/report.py"
+
+
+def test_figure3_counts_tasks_where_ppo_leads_trails_or_ties_each_peer(tmp_path):
+    results = tmp_path / "results"
+    for seed, noise in [(1, -1.0), (2, 0.0), (3, 1.0)]:
+        fake_run(results / "mujoco", "Hopper-v5", "clip0.2", seed, 1000 + 10 * noise)
+        fake_run(results / "mujoco", "Swimmer-v5", "clip0.2", seed, 50 + 10 * noise)
+        fake_run(results / "mujoco", "Reacher-v5", "clip0.2", seed, -5 + noise)
+        fake_run(results / "figure3", "Hopper-v5", "a2c", seed, 500 + 10 * noise)  # PPO ahead, far beyond 2 SE
+        fake_run(results / "figure3", "Swimmer-v5", "a2c", seed, 100 + 10 * noise)  # PPO behind
+        fake_run(results / "figure3", "Reacher-v5", "a2c", seed, -5.5 + noise)  # within: 0.5 apart, SE 0.8
+    fake_run(results / "figure3", "Hopper-v5", "trpo", 1, 900)  # one seed: not comparable
+    text = report.figure3_markdown(results / "figure3", results)
+    line = next(line for line in text.splitlines() if line.startswith("**Over the last 100 episodes"))
+    assert "against A2C (SB3), PPO is ahead on 1 (Hopper); behind on 1 (Swimmer); within 2 standard errors on 1" in line
+    assert "against TRPO (sb3-contrib), PPO is not comparable yet on 3 (Hopper, Reacher, Swimmer)" in line
+    assert "| Hopper-v5 | A2C (SB3) | 500.0 ± 10.0 (3) |" in text
+    assert (results / "figure3" / "curves" / "figure3.png").exists()
+
+
+def test_sb3_mujoco_reads_the_rl_zoos_entry_for_the_task():
+    pytest.importorskip("rl_zoo3")
+    sb3 = run.load_script("benchmarks/sb3_mujoco.py")
+    params, source = sb3.hyperparameters("trpo", "HalfCheetah-v5")
+    assert source == "rl_zoo3 hyperparams/trpo.yml, entry HalfCheetah-v4" and params["normalize"] is True
+    assert params["target_kl"] == 0.04 and params["n_envs"] == 2  # the task's own entry, over the shared defaults
+    params, source = sb3.hyperparameters("a2c", "Reacher-v5")
+    assert source.endswith("entry default (the Zoo has no entry for this task: SB3's defaults)")
+    assert "normalize" not in params and params["policy"] == "MlpPolicy"
