@@ -985,7 +985,7 @@ def rlhf_block(results=RESULTS):
     variants = ordered_variants("rlhf", runs)
     seeds = ", ".join(map(str, sorted({r.seed for r in runs})))
     steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in runs}))
-    columns = [c for c in RLHF_COLUMNS if c[0] in ("score", "gold_score", "kl", "entropy", "response_length")]
+    columns = [c for c in RLHF_COLUMNS if c[0] in ("score", "gold_score", "kl", "entropy", "rm_accuracy")]
     lines = [
         RLHF_START,
         "",
@@ -1015,6 +1015,14 @@ def rlhf_block(results=RESULTS):
             f"- **Time.** A default run, `python ppo_rlhf.py`, took {minutes[0]:.1f}–{minutes[-1]:.1f} min for all"
             f" three stages, with {where_run(default_runs)} ({len(minutes)} run{'s' if len(minutes) > 1 else ''};"
             " other work may have shared it)."
+        )
+    # Stages 1 and 2 depend only on the seed: one reward model a seed, whichever setting ran it.
+    held_out = {r.seed: float(r.meta["rm_held_out_accuracy"]) for r in runs if "rm_held_out_accuracy" in r.meta}
+    if held_out:
+        lines.append(
+            f"- **The reward model** ranked {fmt(*mean_std(list(held_out.values())))} of held-out pairs of π_SFT's"
+            f" responses as gold does ({len(held_out)} seeds, one reward model each); the table's last column is its"
+            " accuracy on pairs of the policy's own responses, where the policy went."
         )
     overoptimized = []
     for variant in variants:

@@ -179,8 +179,15 @@ def test_the_grammar_is_well_formed_and_the_gold_reward_is_the_valence_sum():
     import random
 
     rng = random.Random(0)
-    assert all(rlhf.parse_review(" ".join(rlhf.sample_review(rng))) is not None for _ in range(500))
+    reviews = [" ".join(rlhf.sample_review(rng)) for _ in range(2000)]
+    assert all(rlhf.parse_review(review) is not None for review in reviews)
+    # People never write a clause twice: the corpus has none, so the reward model never sees one ranked.
+    clauses = [review.removesuffix(" <eos>").split(" and ") for review in reviews]
+    assert all(len(set(c)) == len(c) for c in clauses) and max(map(len, clauses)) == 3
     assert rlhf.parse_review("the film was very superb and the plot was not awful and the cast was dull <eos>") == 8
+    # A reader takes a review that repeats a clause word for word for spam; the same aspect judged anew is no repeat.
+    assert rlhf.parse_review("the film was superb and the plot was good and the film was superb <eos>") == -6
+    assert rlhf.parse_review("the film was superb and the film was very superb <eos>") == 9
     for broken in ["the film was good", "the film was good and <eos>", "the film was very very good <eos>", "<eos>"]:
         assert rlhf.parse_review(broken) is None, broken
     assert len(set(rlhf.WORDS)) == len(rlhf.WORDS) and len({rlhf.PAD, rlhf.BOS, rlhf.EOS}) == 3
