@@ -112,12 +112,7 @@ def group_advantages(rewards, mask, group_size):
     """GRPO's advantage (Shao et al. 2024, arXiv:2402.03300, §4.1.2), in place of GAE and a critic: each response's
     summed reward minus its group's mean (a group: consecutive rows, one prompt), over the group's std, at each of its
     tokens. DeepSeek's GRPO and TRL's add an estimate of beta KL[pi || pi_ref] to the loss instead: here it stays in
-    the reward, as in PPO, so that only the advantage differs.
-
-    >>> group_advantages(torch.tensor([[1.0, 0.0], [3.0, 0.0]]), torch.ones(2, 2), 2)
-    tensor([[-0.7071, -0.7071],
-            [ 0.7071,  0.7071]])
-    """
+    the reward, as in PPO, so that only the advantage differs."""
     returns = rewards.sum(1).view(-1, group_size)
     advantages = (returns - returns.mean(1, keepdim=True)) / (returns.std(1, keepdim=True) + 1e-8)
     return advantages.view(-1, 1) * mask
@@ -144,8 +139,7 @@ def preference_loss(chosen_scores, rejected_scores):
 
 
 def pairwise_accuracy(scores, gold):
-    """The share of pairs of responses with different gold scores that the reward model ranks as gold does (nan
-    if there is no such pair): how good a proxy it is on these responses."""
+    """How good a proxy the RM is here: the share of pairs of different gold it ranks as gold does (nan if none)."""
     differ = gold[:, None] > gold[None, :]
     return ((scores[:, None] > scores[None, :]) & differ).sum() / differ.sum()
 
@@ -223,9 +217,8 @@ def gold_scores(tokens, mask):
 
 @torch.no_grad()
 def generate(lm, n, response_length, temperature, group_size=1):
-    """n prompts "<bos> the NOUN", each repeated group_size times, and responses from lm: sequences [n * group_size,
-    P + response_length] with PAD after the first EOS, and their mask, 1 on the response up to and including its
-    first EOS (on all of it if it has none)."""
+    """n prompts "<bos> the NOUN", each group_size times, and lm's responses: sequences [n group_size, P + L] with PAD
+    after the first EOS, and their mask, 1 on a response up to its first EOS included (on all of it if it has none)."""
     nouns = torch.randint(len(NOUNS), (n, 1), device=lm.lm_head.weight.device) + TOKEN[NOUNS[0]]
     nouns = nouns.repeat_interleave(group_size, 0)
     tokens = torch.cat([torch.full_like(nouns, BOS), torch.full_like(nouns, TOKEN["the"]), nouns], 1)
@@ -381,8 +374,7 @@ def train_reward_model(args, sft, run_dir, device, stop):
 
 @torch.no_grad()
 def rollout(agent, reference, reward_model, args):
-    """Sample a response to each prompt from pi_theta_old (--group-size of them with GRPO), and gather what PPO needs
-    as a dict of [B, ...] tensors."""
+    """Responses to prompts from pi_theta_old (--group-size a prompt with GRPO), and what PPO needs, [B, ...] each."""
     group_size = args.group_size if args.advantage == "grpo" else 1
     n = args.batch_size // group_size
     tokens, mask = generate(agent.policy, n, args.response_length, args.temperature, group_size)
@@ -493,7 +485,9 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
             writer.add_scalar(name, value, global_step)
         if args.adaptive_kl:
             kl_coef = adapt_kl_coef(kl_coef, stats["rlhf/kl"], args.kl_target, args.batch_size, args.kl_horizon)
-        text = " | ".join(f"{name} {stats[f'rlhf/{name}']:+.2f}" for name in ("score", "gold_score", "kl"))
+        text = " | ".join(
+            f"{name} {stats[f'rlhf/{name}']:+.2f}" for name in ("score", "gold_score", "kl", "rm_accuracy")
+        )
         text += f" | beta {kl_coef:.3g} | SPS {sps:.0f}"
         report("stage 3, PPO: iteration", iteration, num_iterations, start_time, text, start_iteration - 1)
 
@@ -517,13 +511,13 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
 
 
 def train(args, stop=()):
-    """Stages 1 to 3, each skipped where a checkpoint holds it; returns (agent, run_dir) or raises Stopped, Diverged.
-    Each stage checks `stop` after each step, and stops, saved, once it is non-empty."""
+    """Stages 1 to 3, each skipped where a checkpoint holds it, each stopping once `stop` is non-empty; returns (agent,
+    run_dir) or raises Stopped, Diverged."""
     from torch.utils.tensorboard import SummaryWriter
 
     checkpoint = load_checkpoint(args.resume) if args.resume else None
-    if checkpoint:  # the run of the checkpoint, with how to run it (RUNTIME_FIELDS) from the command line
-        runtime = {k: getattr(args, k) for k in RUNTIME_FIELDS}
+    if checkpoint:
+        runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
         args = Args(**{**checkpoint["args"], **runtime, "run_dir": os.path.dirname(os.path.abspath(args.resume))})
     run_dir = args.run_dir or f"runs/reviews__{args.exp_name}__{args.seed}__{int(time.time())}"
     device = torch.device("cpu" if args.device == "auto" else args.device)
@@ -539,14 +533,14 @@ def train(args, stop=()):
         return train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer)
 
 
-# MACHINERY: how a run ends early, checkpoints, argument checks and the command line.
-# Stopped by Ctrl-C or SIGTERM, after saving what it could; or Diverged, with the last finite checkpoint kept.
+# MACHINERY. A run ends early Stopped (Ctrl-C or SIGTERM, after a checkpoint) or Diverged (last finite one kept).
 class Stopped(Exception): ...
 
 
 class Diverged(Exception): ...
 
 
+# A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
 RUNTIME_FIELDS = ("device", "compile", "torch_threads", "save_every", "resume")
 FORMAT = "ppo-checkpoint-v1"
 
@@ -572,7 +566,7 @@ def load_checkpoint(path, stage="ppo"):
     return checkpoint
 
 
-# Every number must be positive, except these, which have ranges of their own.
+# Every number must be finite and positive, except these, which have ranges of their own.
 RANGES = {"seed": (-math.inf, math.inf), "no_eos_score": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
 # The shortest review's response, "was ADJ <eos>", is 3 tokens; 100 comparisons hold out 10 to measure the RM with.
 RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "response_length": (3, BLOCK_SIZE - PROMPT_LENGTH)}
@@ -584,7 +578,7 @@ def check_args(args):
     flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
     for name, value in asdict(args).items():
         low, high = RANGES.get(name, (0, math.inf))
-        if isinstance(value, bool) or not isinstance(value, int | float):
+        if type(value) not in (int, float):  # strings, booleans and None have no range
             continue
         if not math.isfinite(value):
             raise ValueError(f"{flag(name)} must be a finite number, got {value}")
@@ -629,14 +623,14 @@ def main():
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts
         sys.exit(2)
     torch.set_num_threads(args.torch_threads)
-    # A run owns the process: Ctrl-C and SIGTERM only set the flag that each stage reads after each step.
+    # A training run owns the process: Ctrl-C and SIGTERM only set the flag that each stage reads after each step.
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: stop.append(signum))
     try:
         train(args, stop)
     except Stopped as e:
-        print(e, flush=True)
+        print(e)
         sys.exit(130)
     except Diverged as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)
