@@ -258,21 +258,21 @@ class Agent(nn.Module):
     def get_value(self, obs):
         return self.critic(obs).squeeze(-1)
 
-    def policy(self, obs):
+    def pi_and_value(self, obs):
         # Continuous details 1 and 3: a diagonal Gaussian pi(.|s); log-probs sum over the action's dimensions.
         # Its arguments are valid by construction (train() stops if they stop being finite).
-        return Normal(self.actor_mean(obs), self.actor_logstd.exp(), validate_args=False)
+        return Normal(self.actor_mean(obs), self.actor_logstd.exp(), validate_args=False), self.get_value(obs)
 
     def get_action_and_value(self, obs):
         """The rollout's step: an action sampled from pi(.|s), its log-prob, and V(s)."""
-        probs = self.policy(obs)
+        probs, value = self.pi_and_value(obs)
         action = probs.sample()
-        return action, probs.log_prob(action).sum(-1), self.get_value(obs)
+        return action, probs.log_prob(action).sum(-1), value
 
     def get_logprob_entropy_value(self, obs, action):
         """The update's forward pass: the log-prob of the rollout's action under pi(.|s), the entropy, and V(s)."""
-        probs = self.policy(obs)
-        return probs.log_prob(action).sum(-1), probs.entropy().sum(-1), self.get_value(obs)
+        probs, value = self.pi_and_value(obs)
+        return probs.log_prob(action).sum(-1), probs.entropy().sum(-1), value
 
 
 # TRAINING
