@@ -263,10 +263,11 @@ class Agent(nn.Module):
         # Its arguments are valid by construction (train() stops if they stop being finite).
         return Normal(self.actor_mean(obs), self.actor_logstd.exp(), validate_args=False), self.get_value(obs)
 
-    def get_action_and_value(self, obs):
-        """The rollout's step: an action sampled from pi(.|s), its log-prob, and V(s)."""
+    def get_action_and_value(self, obs, action=None):
+        """The rollout's step: an action sampled from pi(.|s) (or the given one), its log-prob, and V(s)."""
         probs, value = self.pi_and_value(obs)
-        action = probs.sample()
+        if action is None:
+            action = probs.sample()
         return action, probs.log_prob(action).sum(-1), value
 
     def get_logprob_entropy_value(self, obs, action):

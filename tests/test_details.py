@@ -128,19 +128,18 @@ def install(mp, rec):
             if rec.phase == "train":
                 rec.agents.append(self)
 
-        def get_action_and_value(self, obs, action=None):
+        def get_action_and_value(self, obs, action=None):  # the rollout samples (Atari's FIRE step gives one)
             out = super().get_action_and_value(obs, action)
-            if rec.phase != "train":
-                return out
-            if action is None:  # the rollout samples; the update evaluates the actions of the batch
+            if rec.phase == "train" and action is None:
                 rec.rollout.append(
-                    dict(
-                        obs=detach(obs),
-                        **dict(zip(("action", "logprob", "entropy", "value"), detach(out), strict=True)),
-                    )
+                    dict(obs=detach(obs), **dict(zip(("action", "logprob", "value"), detach(out), strict=True)))
                 )
-            else:
-                _, logprob, entropy, value = out
+            return out
+
+        def get_logprob_entropy_value(self, obs, action):  # the update evaluates the actions of the batch
+            out = super().get_logprob_entropy_value(obs, action)
+            if rec.phase == "train":
+                logprob, entropy, value = out
                 rec.minibatches.append(
                     dict(
                         obs=detach(obs),
@@ -931,7 +930,7 @@ def test_atari9_frames_scaled_to_0_1_in_the_network(script, recorded):
     obs = torch.randint(0, 256, (3, 4, 84, 84), dtype=torch.uint8)
     with torch.no_grad():
         hidden = agent.network(obs.float() / 255.0)
-        _, logprob, _, value = agent.get_action_and_value(obs, torch.arange(3))
+        logprob, _, value = agent.get_logprob_entropy_value(obs, torch.arange(3))
         torch.testing.assert_close(value, agent.critic(hidden).squeeze(-1))
         torch.testing.assert_close(
             logprob, torch.log_softmax(agent.actor(hidden), -1)[torch.arange(3), torch.arange(3)]
