@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 import torch.nn as nn
-from torch.distributions import Normal
+from torch.distributions import Independent, Normal
 
 SCRIPT = os.path.basename(__file__)
 
@@ -73,11 +73,10 @@ class Args:
 
 # THE MATH
 def compute_gae(rewards, values, next_values, terminations, truncations, gamma, gae_lambda):
-    """Generalized advantage estimation, eq. (11)-(12), over [T, N] tensors.
-
-    next_values[t] is V of the observation that step t reached: after a time-limit truncation, the
-    final observation's, which is bootstrapped (Pardo et al. 2018); no advantage flows across an
-    episode's end. The returns A + V are the value function's TD(lambda) targets (core detail 5).
+    """Generalized advantage estimation, eq. (11)-(12), over [T, N] tensors. next_values[t] is V of the observation
+    that step t reached: after a time-limit truncation, the final observation's, which is bootstrapped (Pardo et al.
+    2018); no advantage flows across an episode's end. The returns A + V are the value function's TD(lambda) targets
+    (core detail 5).
 
     >>> one = torch.ones(3, 1)
     >>> adv, ret = compute_gae(one, 0 * one, 0 * one, torch.tensor([[0.0], [0.0], [1.0]]), 0 * one, 0.5, 1.0)
@@ -131,10 +130,9 @@ def adapt_beta(beta, kl, kl_target):
 
 
 def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
-    """L^VF of eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9).
-
-    The clipped form is not the paper's: the larger of the errors of the new value and of the old
-    value moved at most clip_coef towards it."""
+    """L^VF of eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9). The
+    clipped form is not the paper's: the larger of the errors of the new value and of the old value moved at most
+    clip_coef towards it."""
     v_loss_unclipped = (newvalue - returns) ** 2
     if not clip_vloss:
         return v_loss_unclipped.mean()
@@ -145,7 +143,7 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
 def minibatch_loss(agent, batch, mb_inds, clip_coef, args, old_logstd, beta):
     """Minus eq. (9), with L^KLPEN in place of L^CLIP, on the minibatch mb_inds of the batch, and its statistics."""
     mb = {key: value[mb_inds] for key, value in batch.items()}
-    newlogprob, entropy, newvalue = agent.get_logprob_entropy_value(mb["obs"], mb["actions"])
+    _, newlogprob, probs, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
     logratio = newlogprob - mb["logprobs"]
     ratio = logratio.exp()  # r_t(theta), eq. (6)
     advantages = mb["advantages"]
@@ -154,19 +152,14 @@ def minibatch_loss(agent, batch, mb_inds, clip_coef, args, old_logstd, beta):
     kl = gaussian_kl(mb["old_means"], old_logstd, agent.actor_mean(mb["obs"]), agent.actor_logstd)
     pg_loss = kl_penalty_loss(ratio, advantages, kl, beta)
     v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
-    entropy = entropy.mean()
+    entropy = probs.entropy().mean()
     loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
+    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy, "loss": loss}
     # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative; nothing is
     # clipped here: clipfrac is the fraction of ratios that PPO-Clip would clip.
-    stats = {
-        "policy_loss": pg_loss,
-        "value_loss": v_loss,
-        "entropy": entropy,
-        "old_approx_kl": (-logratio).mean(),
-        "approx_kl": ((ratio - 1) - logratio).mean(),
-        "clipfrac": ((ratio - 1.0).abs() > clip_coef).float().mean(),
-        "loss": loss,
-    }
+    stats["old_approx_kl"] = (-logratio).mean()
+    stats["approx_kl"] = ((ratio - 1) - logratio).mean()
+    stats["clipfrac"] = ((ratio - 1.0).abs() > clip_coef).float().mean()
     return loss, {name: stat.detach() for name, stat in stats.items()}
 
 
@@ -234,12 +227,10 @@ class RunningMeanStd(nn.Module):
         self.count = epsilon
 
     def update(self, x):
-        batch_mean = x.mean(0)
-        batch_var = x.var(0)
         batch_count = x.shape[0]
-        delta = batch_mean - self.mean
+        delta = x.mean(0) - self.mean
         total = self.count + batch_count
-        m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total
+        m2 = self.var * self.count + x.var(0) * batch_count + delta**2 * self.count * batch_count / total
         self.var = m2 / total
         self.mean = self.mean + delta * batch_count / total
         self.count = total
@@ -288,22 +279,14 @@ class Agent(nn.Module):
     def get_value(self, obs):
         return self.critic(obs).squeeze(-1)
 
-    def pi_and_value(self, obs):
-        # Continuous details 1 and 3: a diagonal Gaussian pi(.|s); log-probs sum over the action's dimensions.
-        # Its arguments are valid by construction (train() stops if they stop being finite).
-        return Normal(self.actor_mean(obs), self.actor_logstd.exp(), validate_args=False), self.get_value(obs)
-
     def get_action_and_value(self, obs, action=None):
-        """The rollout's step: an action sampled from pi(.|s) (or the given one), its log-prob, and V(s)."""
-        probs, value = self.pi_and_value(obs)
+        """An action sampled from pi(.|s) (or the given one), its log-prob, pi(.|s) itself, and V(s)."""
+        # Continuous details 1 and 3: a diagonal Gaussian, whose log-probs (and entropy) sum over the action's
+        # dimensions. Its arguments are valid by construction (train() stops if they stop being finite).
+        probs = Independent(Normal(self.actor_mean(obs), self.actor_logstd.exp(), validate_args=False), 1)
         if action is None:
             action = probs.sample()
-        return action, probs.log_prob(action).sum(-1), value
-
-    def get_logprob_entropy_value(self, obs, action):
-        """The update's forward pass: the log-prob of the rollout's action under pi(.|s), the entropy, and V(s)."""
-        probs, value = self.pi_and_value(obs)
-        return probs.log_prob(action).sum(-1), probs.entropy().sum(-1), value
+        return action, probs.log_prob(action), probs, self.get_value(obs)
 
 
 # TRAINING
@@ -362,7 +345,7 @@ def train(args, stop=()):
                 for step in range(T):
                     global_step += N
                     obs[step] = next_obs
-                    action, logprobs[step], values[step] = agent.get_action_and_value(next_obs)
+                    action, logprobs[step], _, values[step] = agent.get_action_and_value(next_obs)
                     actions[step] = action
                     # Continuous detail 5: clip the action for the env only; the ratio uses the sample's log-prob.
                     action = np.clip(action.cpu().numpy(), envs.single_action_space.low, envs.single_action_space.high)
@@ -424,7 +407,9 @@ def train(args, stop=()):
                 raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
             if stop or iteration % args.save_every == 0 or iteration == num_iterations:
                 writer.flush()  # the curve on disk reaches at least the checkpoint's step
-                save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration, beta)
+                save_checkpoint(
+                    checkpoint_path, args, agent, optimizer, global_step=global_step, iteration=iteration, beta=beta
+                )
             if stop:
                 raise Stopped(f"saved step {global_step:,}: continue with --resume {checkpoint_path}")
     print(f"saved {checkpoint_path}")
@@ -514,20 +499,10 @@ RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume e
 FORMAT = "ppo-checkpoint-v1"
 
 
-def save_checkpoint(path, args, agent, optimizer, global_step, iteration, beta):
+def save_checkpoint(path, args, agent, optimizer, **numbers):
     # Tensors, numbers and strings, loadable with torch.load(weights_only=True); written, then renamed, atomically.
-    checkpoint = {
-        "format": FORMAT,
-        "script": SCRIPT,
-        "args": asdict(args),
-        "agent": agent.state_dict(),
-        "optimizer": optimizer.state_dict(),
-        "global_step": global_step,
-        "iteration": iteration,
-        "torch_rng_state": torch.get_rng_state(),
-        "beta": beta,
-    }
-    torch.save(checkpoint, f"{path}.tmp")
+    state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "torch_rng_state": torch.get_rng_state()}
+    torch.save({"format": FORMAT, "script": SCRIPT, "args": asdict(args), **state, **numbers}, f"{path}.tmp")
     os.replace(f"{path}.tmp", path)
 
 
@@ -548,9 +523,8 @@ def load_checkpoint(path, args):
 
 
 # Every number must be finite and positive, except these, which have ranges of their own.
-RANGES = dict(
-    seed=(-math.inf, math.inf), gamma=(0, 1), gae_lambda=(0, 1), ent_coef=(0, math.inf), vf_coef=(0, math.inf)
-)
+RANGES = {"seed": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
+RANGES |= {"ent_coef": (0, math.inf), "vf_coef": (0, math.inf)}
 RANGES["init_beta"] = (0, math.inf)
 
 

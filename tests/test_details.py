@@ -128,18 +128,17 @@ def install(mp, rec):
             if rec.phase == "train":
                 rec.agents.append(self)
 
-        def get_action_and_value(self, obs, action=None):  # the rollout samples (Atari's FIRE step gives one)
+        def get_action_and_value(self, obs, action=None):
             out = super().get_action_and_value(obs, action)
-            if rec.phase == "train" and action is None:
+            if rec.phase != "train":
+                return out
+            action_out, logprob, probs, value = out
+            if action is None:  # the rollout samples; the update evaluates the actions of the batch
                 rec.rollout.append(
-                    dict(obs=detach(obs), **dict(zip(("action", "logprob", "value"), detach(out), strict=True)))
+                    dict(obs=detach(obs), action=detach(action_out), logprob=detach(logprob), value=detach(value))
                 )
-            return out
-
-        def get_logprob_entropy_value(self, obs, action):  # the update evaluates the actions of the batch
-            out = super().get_logprob_entropy_value(obs, action)
-            if rec.phase == "train":
-                logprob, entropy, value = out
+            else:
+                entropy = probs.entropy()
                 rec.minibatches.append(
                     dict(
                         obs=detach(obs),
@@ -930,7 +929,7 @@ def test_atari9_frames_scaled_to_0_1_in_the_network(script, recorded):
     obs = torch.randint(0, 256, (3, 4, 84, 84), dtype=torch.uint8)
     with torch.no_grad():
         hidden = agent.network(obs.float() / 255.0)
-        logprob, _, value = agent.get_logprob_entropy_value(obs, torch.arange(3))
+        _, logprob, _, value = agent.get_action_and_value(obs, torch.arange(3))
         torch.testing.assert_close(value, agent.critic(hidden).squeeze(-1))
         torch.testing.assert_close(
             logprob, torch.log_softmax(agent.actor(hidden), -1)[torch.arange(3), torch.arange(3)]
