@@ -323,7 +323,7 @@ def train(args, stop=()):
             agent.load_state_dict(checkpoint["agent"])
             optimizer.load_state_dict(checkpoint["optimizer"])
             torch.set_rng_state(checkpoint["torch_rng_state"])
-            print(f"resuming {run_dir} at step {global_step:,} (iteration {checkpoint['iteration']})")
+            print(f"resuming {run_dir} at step {global_step:,}")
 
         # Rollout storage: T steps of N envs. Observations are stored normalized: they are the inputs.
         obs = torch.zeros((T, N, obs_dim), device=device)
@@ -377,13 +377,12 @@ def train(args, stop=()):
             with torch.no_grad():  # pi_old, for the exact KL of eq. (8)
                 batch["old_means"] = agent.actor_mean(batch["obs"])
                 old_logstd = agent.actor_logstd.clone()
+            beta_tensor = torch.tensor(beta)  # a tensor: a new beta changes a number, not what --compile built
             update_stats = []
             for _epoch in range(args.update_epochs):
                 # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches.
                 for mb_inds in torch.randperm(batch_size, device=device).split(args.minibatch_size):
-                    loss, stats = compute_loss(
-                        agent, batch, mb_inds, args.clip_coef, args, old_logstd, torch.tensor(beta)
-                    )
+                    loss, stats = compute_loss(agent, batch, mb_inds, args.clip_coef, args, old_logstd, beta_tensor)
                     gradient_step(agent, optimizer, loss, args)
                     update_stats.append(stats)
 
@@ -407,9 +406,7 @@ def train(args, stop=()):
                 raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
             if stop or iteration % args.save_every == 0 or iteration == num_iterations:
                 writer.flush()  # the curve on disk reaches at least the checkpoint's step
-                save_checkpoint(
-                    checkpoint_path, args, agent, optimizer, global_step=global_step, iteration=iteration, beta=beta
-                )
+                save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration, beta=beta)
             if stop:
                 raise Stopped(f"saved step {global_step:,}: continue with --resume {checkpoint_path}")
     print(f"saved {checkpoint_path}")
@@ -422,7 +419,7 @@ def evaluate(args):
     checkpoint, train_args = load_checkpoint(args.eval_checkpoint, args)
     device = pick_device(args.device)
     video_dir = f"{train_args.run_dir}/videos-eval"
-    with contextlib.closing(make_env(train_args.env_id, args.capture_video, video_dir, "eval", lambda _: True)) as env:
+    with make_env(train_args.env_id, args.capture_video, video_dir, "eval", lambda _: True) as env:
         agent = Agent(env.observation_space.shape[0], env.action_space.shape[0], norm_obs=train_args.norm_obs)
         agent.to(device).load_state_dict(checkpoint["agent"])
         returns = []
@@ -443,8 +440,7 @@ def evaluate(args):
     return returns
 
 
-# MACHINERY: how a run ends early, its log, checkpoints, argument checks and the command line.
-# Stopped by Ctrl-C or SIGTERM, after the iteration's checkpoint; or Diverged, with the last finite checkpoint kept.
+# MACHINERY. A run ends early Stopped (Ctrl-C or SIGTERM, after a checkpoint) or Diverged (last finite one kept).
 class Stopped(Exception): ...
 
 
@@ -489,9 +485,9 @@ class Log:
             self.writer.add_scalar(f"losses/{name}", value, step)
         if time.time() - self.printed > 10 or step == self.total_steps:
             self.printed = time.time()
-            recent = f"return (last {len(self.recent)}) {np.mean(self.recent) if self.recent else np.nan:.1f}"
+            mean = np.mean(self.recent) if self.recent else np.nan  # the return of the last 100 episodes
             eta = (self.total_steps - step) / max(sps, 1) / 60
-            print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | {recent} | ETA {eta:.1f} min", flush=True)
+            print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean:.1f} | ETA {eta:.1f} min", flush=True)
 
 
 # A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
@@ -499,9 +495,10 @@ RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume e
 FORMAT = "ppo-checkpoint-v1"
 
 
-def save_checkpoint(path, args, agent, optimizer, **numbers):
+def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more):
     # Tensors, numbers and strings, loadable with torch.load(weights_only=True); written, then renamed, atomically.
     state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "torch_rng_state": torch.get_rng_state()}
+    numbers = {"global_step": global_step, "iteration": iteration, **more}
     torch.save({"format": FORMAT, "script": SCRIPT, "args": asdict(args), **state, **numbers}, f"{path}.tmp")
     os.replace(f"{path}.tmp", path)
 
@@ -514,7 +511,7 @@ def load_checkpoint(path, args):
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
-        raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({type(e).__name__})") from None
+        raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({e})") from None
     if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, SCRIPT):
         raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
@@ -535,7 +532,7 @@ def check_args(args):
     for name, value in asdict(args).items():
         flag = "--" + name.replace("_", "-")
         low, high = RANGES.get(name, (0, math.inf))
-        if isinstance(value, bool) or not isinstance(value, int | float):
+        if type(value) not in (int, float):  # strings, booleans and None have no range
             continue
         if not math.isfinite(value):
             raise ValueError(f"{flag} must be a finite number, got {value}")
@@ -546,13 +543,13 @@ def check_args(args):
     batch = args.num_envs * args.num_steps
     if batch % args.minibatch_size:
         raise ValueError(f"--minibatch-size {args.minibatch_size} does not divide the batch of {batch} steps")
-    if args.resume is None and args.eval_checkpoint is None and args.total_timesteps < batch:
+    if not (args.resume or args.eval_checkpoint) and args.total_timesteps < batch:
         raise ValueError(f"--total-timesteps {args.total_timesteps} is less than one batch of {batch} steps")
     if args.init_beta == 0 and args.adaptive_beta:
         raise ValueError("--init-beta 0 never adapts (halving or doubling 0 leaves 0); add --no-adaptive-beta")
     if args.device not in ("auto", "cpu") and not (args.device.startswith("cuda") and torch.cuda.is_available()):
         raise ValueError(f"--device {args.device} is not available here; use auto or cpu")
-    if args.resume is not None or args.eval_checkpoint is not None:
+    if args.resume or args.eval_checkpoint:
         _, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
     try:
         env = gym.make(args.env_id)
@@ -563,18 +560,18 @@ def check_args(args):
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ValueError(f"{args.env_id} has a {env.action_space} action space: {SCRIPT} needs a Box one, flat obs")
-    if args.eval_checkpoint is not None or args.run_dir is None:
+    run_dir = args.run_dir
+    if args.eval_checkpoint or run_dir is None:
         return
-    if os.path.isfile(args.run_dir):
-        raise ValueError(f"--run-dir {args.run_dir} is a file, not a directory")
-    if args.resume is None and os.path.isdir(args.run_dir) and any("tfevents" in f for f in os.listdir(args.run_dir)):
-        path = os.path.join(args.run_dir, "checkpoint.pt")
-        raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {path}")
+    if os.path.isfile(run_dir):
+        raise ValueError(f"--run-dir {run_dir} is a file, not a directory")
+    if not args.resume and os.path.isdir(run_dir) and any("tfevents" in f for f in os.listdir(run_dir)):
+        raise ValueError(f"--run-dir {run_dir} already holds a run: continue it with --resume {run_dir}/checkpoint.pt")
     try:
-        os.makedirs(args.run_dir, exist_ok=True)
-        tempfile.TemporaryFile(dir=args.run_dir).close()
+        os.makedirs(run_dir, exist_ok=True)
+        tempfile.TemporaryFile(dir=run_dir).close()
     except OSError as e:
-        raise ValueError(f"--run-dir {args.run_dir} cannot be created or written: {e.strerror}") from None
+        raise ValueError(f"--run-dir {run_dir} cannot be created or written: {e.strerror}") from None
 
 
 def main():
