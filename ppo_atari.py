@@ -5,12 +5,10 @@ in L^{CLIP+VF+S}, eq. (9), 8 actors, and alpha annealing the learning rate and t
 is silent we follow "The 37 Implementation Details of PPO" (Huang et al. 2022): "core detail N" (of 13) and "atari
 detail N" (of 9). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes.
 
-    python ppo_atari.py                                  # Breakout, 10M steps (40M frames)
+    python ppo_atari.py                                  # Breakout, 10M steps (40M frames): a job for a GPU
     python ppo_atari.py --env-id PongNoFrameskip-v4 --total-timesteps 1000000
     python ppo_atari.py --compile                        # the same algorithm, compiled by torch.compile
     python ppo_atari.py --help                           # every flag, with its default
-
-The paper's 10M steps are a job for a GPU (auto picks CUDA when there is one).
 """
 
 import contextlib
@@ -42,12 +40,10 @@ class Args:
     run_dir: str | None = None  # where the logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
     capture_video: bool = False  # film games 0, 1, 8, 27, ... of the first env in training, and every evaluation game
     # Algorithm: the paper's Atari settings (Table 5) where it gives one, else the implementation detail cited
-    # an Atari game: <Game>NoFrameskip-v4, as in the paper (no sticky actions), or ALE/<Game>-v5 (sticky actions, 0.25)
-    env_id: str = "BreakoutNoFrameskip-v4"
+    env_id: str = "BreakoutNoFrameskip-v4"  # <Game>NoFrameskip-v4 as in the paper, or ALE/<Game>-v5 (sticky actions)
     total_timesteps: int = 10_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 10M)
     max_episode_frames: int = 108_000  # truncate a game after this many frames of play (30 minutes at 60 Hz)
-    # After a lost life, step FIRE in place of the policy's action, and train on that step as the policy's own (ale-py
-    # presses FIRE only at a game's start, and its vector env cannot press it as a hidden step, as baselines' did)
+    # After a lost life, step FIRE in place of the policy's action, trained on (ale-py presses it only as a game starts)
     fire_on_life_loss: bool = False
     learning_rate: float = 2.5e-4  # Adam step size at the start (paper: 2.5e-4 x alpha)
     num_envs: int = 8  # number of parallel actors N (paper: 8)
@@ -191,20 +187,13 @@ def layer_init(layer, std=2**0.5, bias_const=0.0):
 class Agent(nn.Module):
     def __init__(self, num_actions):
         super().__init__()
-        # Atari detail 8: the Nature-DQN CNN (§6.4 names the smaller one of [Mni+16]), shared by policy and value;
-        # output gains 0.01 for the policy and 1 for the value (core detail 2).
-        self.network = nn.Sequential(
-            layer_init(nn.Conv2d(4, 32, 8, stride=4)),
-            nn.ReLU(),
-            layer_init(nn.Conv2d(32, 64, 4, stride=2)),
-            nn.ReLU(),
-            layer_init(nn.Conv2d(64, 64, 3, stride=1)),
-            nn.ReLU(),
-            nn.Flatten(),
-            layer_init(nn.Linear(64 * 7 * 7, 512)),
-            nn.ReLU(),
-        )
-        self.actor = layer_init(nn.Linear(512, num_actions), std=0.01)
+        # Atari detail 8: the Nature-DQN CNN (§6.4 names the smaller one of [Mni+16]), shared by policy and value.
+        conv1 = layer_init(nn.Conv2d(4, 32, 8, stride=4))
+        conv2 = layer_init(nn.Conv2d(32, 64, 4, stride=2))
+        conv3 = layer_init(nn.Conv2d(64, 64, 3, stride=1))
+        fc = layer_init(nn.Linear(64 * 7 * 7, 512))
+        self.network = nn.Sequential(conv1, nn.ReLU(), conv2, nn.ReLU(), conv3, nn.ReLU(), nn.Flatten(), fc, nn.ReLU())
+        self.actor = layer_init(nn.Linear(512, num_actions), std=0.01)  # output gains 0.01 and 1 (core detail 2)
         self.critic = layer_init(nn.Linear(512, 1), std=1.0)
 
     def get_value(self, obs):
@@ -226,8 +215,7 @@ def train(args, stop=()):
     flag is set (by Ctrl-C or SIGTERM), after the iteration's checkpoint."""
     from torch.utils.tensorboard import SummaryWriter
 
-    # A new run, or the run of --resume, continued with the hyperparameters of its checkpoint.
-    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)
+    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
     run_dir = args.run_dir or f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     global_step = checkpoint["global_step"] if checkpoint else 0
@@ -235,7 +223,7 @@ def train(args, stop=()):
     T, N = args.num_steps, args.num_envs
     batch_size = N * T
     num_iterations = args.total_timesteps // batch_size
-    compute_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else minibatch_loss  # and its backward
+    compute_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else minibatch_loss  # backward too
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
     # On --resume, purge_step drops what the run logged after its checkpoint.
     with (
@@ -371,9 +359,8 @@ def evaluate(args):
 
 # ATARI GAMES: what an id means, and videos replayed from a game's reset and actions
 def atari_game(env_id):
-    """The ROM and the sticky-action probability that an id means: <Game>NoFrameskip-v4 repeats no action (the
-    paper's games), ALE/<Game>-v5 repeats the last one with probability 0.25. Else a ValueError, with the ids that a
-    loose name could mean."""
+    """The ROM and sticky-action probability of an id: <Game>NoFrameskip-v4 repeats no action (the paper's games),
+    ALE/<Game>-v5 the last one with probability 0.25. Else a ValueError, with the ids a loose name could mean."""
     import ale_py
     import gymnasium as gym  # importing ale_py registered its games
 
@@ -384,15 +371,12 @@ def atari_game(env_id):
     names = {key[4:-3].lower(): key[4:-3] for key in gym.registry if key.startswith("ALE/") and key.endswith("-v5")}
     name = names.get(re.sub(r"(NoFrameskip|Deterministic)?(-v\d+)?$", "", env_id.split("/")[-1]).lower())
     could_mean = f"; did you mean {name}NoFrameskip-v4 (the paper's) or ALE/{name}-v5?" if name else ""
-    ids = "<Game>NoFrameskip-v4 or ALE/<Game>-v5"
-    raise ValueError(
-        f"unknown env id {env_id!r}: this script plays Atari games, with their discrete action space, {ids}{could_mean}"
-    )
+    games = "Atari games, with their discrete action space, <Game>NoFrameskip-v4 or ALE/<Game>-v5"
+    raise ValueError(f"unknown env id {env_id!r}: this script plays {games}{could_mean}")
 
 
 class GameVideo:
-    """The first env's games 0, 1, 8, 27, ... on video with --capture-video: write_video replays each game from its
-    reset frames and actions once it is over."""
+    """With --capture-video, env 0's games 0, 1, 8, 27, ...: write_video replays each from its reset and actions."""
 
     def __init__(self, env_id, video_dir, reset_frames):
         self.env_id = env_id
@@ -413,9 +397,8 @@ class GameVideo:
 
 
 def write_video(env_id, reset_frames, actions, path):
-    """Replay a game in a new emulator, writing every frame in colour (210x160) at 60 Hz to an mp4. Without sticky
-    actions the same reset (ale-py's: FIRE if the game has it, then no-ops, reset_frames in all) and actions play the
-    same game."""
+    """Replay a game in a new emulator, every frame in colour (210x160) at 60 Hz, to an mp4. Without sticky actions the
+    same reset (ale-py's: FIRE if the game has it, then no-ops, reset_frames in all) and actions play the same game."""
     import ale_py
     import imageio.v2 as imageio
 
@@ -426,11 +409,11 @@ def write_video(env_id, reset_frames, actions, path):
     action_set = ale.getMinimalActionSet()
     fire = [ale_py.Action.FIRE] * (ale_py.Action.FIRE in action_set)
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    presses = (
+    moves = (
         fire + [ale_py.Action.NOOP] * (reset_frames - len(fire)) + [action_set[a] for a in actions for _ in range(4)]
     )
     with imageio.get_writer(path, fps=60, macro_block_size=1) as video:
-        for action in presses:
+        for action in moves:
             ale.act(action)
             video.append_data(ale.getScreenRGB())
 
@@ -499,14 +482,13 @@ def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more
 
 
 def load_checkpoint(path, args):
-    """A checkpoint of this script, loaded on the CPU, and the Args of its run in the directory that holds it; a
-    ValueError with a one-line reason if it is not one."""
+    """A checkpoint of this script, on the CPU, and the Args of its run; else a ValueError with a one-line reason."""
     if not os.path.isfile(path):
         raise ValueError(f"checkpoint {path!r} does not exist")
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
-        raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({e})") from None
+        raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({type(e).__name__})") from None
     if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, SCRIPT):
         raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
@@ -545,7 +527,7 @@ def check_args(args):
     if args.capture_video and repeat_action_probability > 0:
         raise ValueError(f"--capture-video replays games, which the sticky actions of {args.env_id} make impossible")
     run_dir = args.run_dir
-    if args.eval_checkpoint or run_dir is None:
+    if run_dir is None or args.eval_checkpoint:  # train() makes the default one; evaluation writes only videos
         return
     if os.path.isfile(run_dir):
         raise ValueError(f"--run-dir {run_dir} is a file, not a directory")

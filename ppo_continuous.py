@@ -13,6 +13,7 @@ their 13) and "continuous detail N" (of their 9 for continuous actions).
 import contextlib
 import math
 import os
+import re
 import signal
 import sys
 import tempfile
@@ -177,13 +178,8 @@ def layer_init(layer, std=2**0.5, bias_const=0.0):
 
 
 def mlp(n_in, n_out, std):
-    return nn.Sequential(
-        layer_init(nn.Linear(n_in, 64)),
-        nn.Tanh(),
-        layer_init(nn.Linear(64, 64)),
-        nn.Tanh(),
-        layer_init(nn.Linear(64, n_out), std=std),
-    )
+    hidden = [layer_init(nn.Linear(n_in, 64)), nn.Tanh(), layer_init(nn.Linear(64, 64)), nn.Tanh()]
+    return nn.Sequential(*hidden, layer_init(nn.Linear(64, n_out), std=std))
 
 
 class RunningMeanStd(nn.Module):
@@ -266,8 +262,7 @@ def train(args, stop=()):
     flag is set (by Ctrl-C or SIGTERM), after the iteration's checkpoint."""
     from torch.utils.tensorboard import SummaryWriter
 
-    # A new run, or the run of --resume, continued with the hyperparameters of its checkpoint.
-    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)
+    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
     run_dir = args.run_dir or f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     global_step = checkpoint["global_step"] if checkpoint else 0
@@ -275,7 +270,7 @@ def train(args, stop=()):
     T, N = args.num_steps, args.num_envs
     batch_size = N * T
     num_iterations = args.total_timesteps // batch_size
-    compute_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else minibatch_loss  # and its backward
+    compute_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else minibatch_loss  # backward too
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
     # Videos are named by their first step. On --resume, purge_step drops what the run logged after its checkpoint.
     with (
@@ -460,14 +455,13 @@ def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more
 
 
 def load_checkpoint(path, args):
-    """A checkpoint of this script, loaded on the CPU, and the Args of its run in the directory that holds it; a
-    ValueError with a one-line reason if it is not one."""
+    """A checkpoint of this script, on the CPU, and the Args of its run; else a ValueError with a one-line reason."""
     if not os.path.isfile(path):
         raise ValueError(f"checkpoint {path!r} does not exist")
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
-        raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({e})") from None
+        raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({type(e).__name__})") from None
     if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, SCRIPT):
         raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
@@ -507,14 +501,13 @@ def check_args(args):
     try:
         env = gym.make(args.env_id)
     except gym.error.Error as e:
-        atari = any(word in args.env_id for word in ("ALE/", "NoFrameskip", "Deterministic"))
-        hint = ". Use ppo_atari.py for Atari games" if atari else ""
+        hint = ". Use ppo_atari.py for Atari games" if re.search(r"ALE/|NoFrameskip|Deterministic", args.env_id) else ""
         raise ValueError(f"unknown env id {args.env_id!r}: {e}{hint}") from None
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
-        raise ValueError(f"{args.env_id} has a {env.action_space} action space: {SCRIPT} needs a Box one, flat obs")
+        raise ValueError(f"{SCRIPT} needs a Box action space and flat observations, not {env.action_space}")
     run_dir = args.run_dir
-    if args.eval_checkpoint or run_dir is None:
+    if run_dir is None or args.eval_checkpoint:  # train() makes the default one; evaluation writes only videos
         return
     if os.path.isfile(run_dir):
         raise ValueError(f"--run-dir {run_dir} is a file, not a directory")
