@@ -5,12 +5,10 @@ in L^{CLIP+VF+S}, eq. (9), 8 actors, and alpha annealing the learning rate and t
 is silent we follow "The 37 Implementation Details of PPO" (Huang et al. 2022): "core detail N" (of 13) and "atari
 detail N" (of 9). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes.
 
-    python ppo_atari.py                                  # Breakout, 10M steps (40M frames)
+    python ppo_atari.py                                  # Breakout, 10M steps (40M frames): a job for a GPU
     python ppo_atari.py --env-id PongNoFrameskip-v4 --total-timesteps 1000000
     python ppo_atari.py --compile                        # the same algorithm, compiled by torch.compile
     python ppo_atari.py --help                           # every flag, with its default
-
-The paper's 10M steps are a job for a GPU (auto picks CUDA when there is one).
 """
 
 import contextlib
@@ -37,17 +35,15 @@ class Args:
     exp_name: str = SCRIPT[: -len(".py")]  # the experiment's name, part of the run directory's
     seed: int = 1  # seed of torch and of the environments
     device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto is cuda when there is one)
-    compile: bool = False  # torch.compile the policy step and the minibatch update (slower to start, faster to run)
+    compile: bool = False  # torch.compile the minibatch update (slower to start, faster to run)
     torch_threads: int = 2  # torch CPU threads (the CNN's convolutions use a second thread)
     run_dir: str | None = None  # where the logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
     capture_video: bool = False  # film games 0, 1, 8, 27, ... of the first env in training, and every evaluation game
     # Algorithm: the paper's Atari settings (Table 5) where it gives one, else the implementation detail cited
-    # an Atari game: <Game>NoFrameskip-v4, as in the paper (no sticky actions), or ALE/<Game>-v5 (sticky actions, 0.25)
-    env_id: str = "BreakoutNoFrameskip-v4"
+    env_id: str = "BreakoutNoFrameskip-v4"  # <Game>NoFrameskip-v4 as in the paper, or ALE/<Game>-v5 (sticky actions)
     total_timesteps: int = 10_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 10M)
     max_episode_frames: int = 108_000  # truncate a game after this many frames of play (30 minutes at 60 Hz)
-    # After a lost life, step FIRE in place of the policy's action, and train on that step as the policy's own (ale-py
-    # presses FIRE only at a game's start, and its vector env cannot press it as a hidden step, as baselines' did)
+    # After a lost life, step FIRE in place of the policy's action, trained on (ale-py presses it only as a game starts)
     fire_on_life_loss: bool = False
     learning_rate: float = 2.5e-4  # Adam step size at the start (paper: 2.5e-4 x alpha)
     num_envs: int = 8  # number of parallel actors N (paper: 8)
@@ -73,11 +69,10 @@ class Args:
 
 # THE MATH
 def compute_gae(rewards, values, next_values, terminations, truncations, gamma, gae_lambda):
-    """Generalized advantage estimation, eq. (11)-(12), over [T, N] tensors.
-
-    next_values[t] is V of the observation that step t reached: after a time-limit truncation, the
-    final observation's, which is bootstrapped (Pardo et al. 2018); no advantage flows across an
-    episode's end. The returns A + V are the value function's TD(lambda) targets (core detail 5).
+    """Generalized advantage estimation, eq. (11)-(12), over [T, N] tensors. next_values[t] is V of the observation
+    that step t reached: after a time-limit truncation, the final observation's, which is bootstrapped (Pardo et al.
+    2018); no advantage flows across an episode's end. The returns A + V are the value function's TD(lambda) targets
+    (core detail 5).
 
     >>> one = torch.ones(3, 1)
     >>> adv, ret = compute_gae(one, 0 * one, 0 * one, torch.tensor([[0.0], [0.0], [1.0]]), 0 * one, 0.5, 1.0)
@@ -109,10 +104,9 @@ def clipped_surrogate_loss(ratio, advantages, clip_coef):
 
 
 def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
-    """L^VF of eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9).
-
-    The clipped form is not the paper's: the larger of the errors of the new value and of the old
-    value moved at most clip_coef towards it."""
+    """L^VF of eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9). The
+    clipped form is not the paper's: the larger of the errors of the new value and of the old value moved at most
+    clip_coef towards it."""
     v_loss_unclipped = (newvalue - returns) ** 2
     if not clip_vloss:
         return v_loss_unclipped.mean()
@@ -120,9 +114,10 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
     return torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
 
 
-def update_minibatch(agent, optimizer, mb, clip_coef, args):
-    """One step of gradient descent on minus L^{CLIP+VF+S}, eq. (9), for the minibatch `mb`; its statistics."""
-    _, newlogprob, entropy, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
+def minibatch_loss(agent, batch, mb_inds, clip_coef, args):
+    """Minus L^{CLIP+VF+S}, eq. (9), on the minibatch mb_inds of the batch, and the statistics of its terms."""
+    mb = {key: value[mb_inds] for key, value in batch.items()}
+    _, newlogprob, probs, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
     logratio = newlogprob - mb["logprobs"]
     ratio = logratio.exp()  # r_t(theta), eq. (6)
     advantages = mb["advantages"]
@@ -130,47 +125,26 @@ def update_minibatch(agent, optimizer, mb, clip_coef, args):
         advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
     pg_loss = clipped_surrogate_loss(ratio, advantages, clip_coef)
     v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
-    entropy = entropy.mean()
+    entropy = probs.entropy().mean()
     loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
+    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy, "loss": loss}
+    # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
+    stats["old_approx_kl"] = (-logratio).mean()
+    stats["approx_kl"] = ((ratio - 1) - logratio).mean()
+    stats["clipfrac"] = ((ratio - 1.0).abs() > clip_coef).float().mean()
+    return loss, {name: stat.detach() for name, stat in stats.items()}
+
+
+def gradient_step(agent, optimizer, loss, args):
+    """One step of gradient descent on the loss."""
     optimizer.zero_grad()
     loss.backward()
     if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
         nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
     optimizer.step()
-    # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
-    stats = {
-        "policy_loss": pg_loss,
-        "value_loss": v_loss,
-        "entropy": entropy,
-        "old_approx_kl": (-logratio).mean(),
-        "approx_kl": ((ratio - 1) - logratio).mean(),
-        "clipfrac": ((ratio - 1.0).abs() > clip_coef).float().mean(),
-        "loss": loss,
-    }
-    return {name: stat.detach() for name, stat in stats.items()}
 
 
 # ENVIRONMENT
-def atari_game(env_id):
-    """The ROM and the sticky-action probability that an id means: <Game>NoFrameskip-v4 repeats no action (the
-    paper's games), ALE/<Game>-v5 repeats the last one with probability 0.25. Else a ValueError, with the ids that a
-    loose name could mean."""
-    import ale_py
-    import gymnasium as gym  # importing ale_py registered its games
-
-    ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # no banner on stderr
-    if re.fullmatch(r"\w+NoFrameskip-v4|ALE/\w+-v5", env_id) and env_id in gym.registry:
-        kwargs = gym.registry[env_id].kwargs
-        return kwargs["game"], kwargs["repeat_action_probability"]
-    names = {key[4:-3].lower(): key[4:-3] for key in gym.registry if key.startswith("ALE/") and key.endswith("-v5")}
-    name = names.get(re.sub(r"(NoFrameskip|Deterministic)?(-v\d+)?$", "", env_id.split("/")[-1]).lower())
-    could_mean = f"; did you mean {name}NoFrameskip-v4 (the paper's) or ALE/{name}-v5?" if name else ""
-    ids = "<Game>NoFrameskip-v4 or ALE/<Game>-v5"
-    raise ValueError(
-        f"unknown env id {env_id!r}: this script plays Atari games, with their discrete action space, {ids}{could_mean}"
-    )
-
-
 def make_envs(args, num_envs=None, training=True):
     """ale-py's vector env: C++ emulators on their own threads, with atari details 1-5 and 7 (6 is in train())."""
     import ale_py
@@ -202,61 +176,6 @@ def game_over(terminations, truncations, frame_numbers, new_frame_numbers):
     return (terminations | truncations) & (new_frame_numbers < frame_numbers)
 
 
-class Games:
-    """The envs' games: which step ends a whole game and which a life, and the first env's games on video, replayed
-    from their reset frames and actions (see write_video): games 0, 1, 8, 27, ... with --capture-video."""
-
-    def __init__(self, infos, capture_video, env_id, video_dir):
-        self.frame_numbers = infos["episode_frame_number"]
-        self.lost_life = np.zeros(len(self.frame_numbers), dtype=bool)
-        self.film = capture_video
-        self.env_id = env_id
-        self.video_dir = video_dir
-        self.games_of_env0 = 0
-        self.video_reset_frames = self.frame_numbers[0]
-        self.video_actions = []
-
-    def step(self, action, term, trunc, infos, global_step):
-        """The envs whose game ended with this step."""
-        finished = game_over(term, trunc, self.frame_numbers, infos["episode_frame_number"])
-        self.frame_numbers = infos["episode_frame_number"]
-        self.lost_life = term & ~finished  # atari detail 3: a termination within a game is a lost life
-        self.video_actions.append(int(action[0]))
-        if finished[0]:
-            n = self.games_of_env0
-            if self.film and n == round(n ** (1 / 3)) ** 3:
-                path = f"{self.video_dir}/step-{global_step}-game-{n}.mp4"
-                write_video(self.env_id, self.video_reset_frames, self.video_actions, path)
-            self.games_of_env0 += 1
-            self.video_actions = []
-            self.video_reset_frames = self.frame_numbers[0]
-        return finished
-
-
-def write_video(env_id, reset_frames, actions, path):
-    """Replay a game in a new emulator, writing every frame in colour (210x160) at 60 Hz to an mp4. Without sticky
-    actions the same reset (ale-py's: FIRE if the game has it, then no-ops, reset_frames in all) and actions play the
-    same game."""
-    import ale_py
-    import imageio.v2 as imageio
-
-    ale = ale_py.ALEInterface()
-    ale.setFloat("repeat_action_probability", 0.0)
-    ale.loadROM(ale_py.roms.get_rom_path(atari_game(env_id)[0]))
-    ale.reset_game()  # as ale-py's reset does: some games (BeamRider) play differently without it
-    action_set = ale.getMinimalActionSet()
-    fire = [ale_py.Action.FIRE] * (ale_py.Action.FIRE in action_set)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with imageio.get_writer(path, fps=60, macro_block_size=1) as video:
-        for action in (
-            fire
-            + [ale_py.Action.NOOP] * (reset_frames - len(fire))
-            + [action_set[a] for a in actions for _ in range(4)]
-        ):
-            ale.act(action)
-            video.append_data(ale.getScreenRGB())
-
-
 # AGENT
 def layer_init(layer, std=2**0.5, bias_const=0.0):
     # Core detail 2: orthogonal weights with gain sqrt(2) for hidden layers, constant 0 biases.
@@ -268,64 +187,58 @@ def layer_init(layer, std=2**0.5, bias_const=0.0):
 class Agent(nn.Module):
     def __init__(self, num_actions):
         super().__init__()
-        # Atari detail 8: the Nature-DQN CNN (§6.4 names the smaller one of [Mni+16]), shared by policy and value;
-        # output gains 0.01 for the policy and 1 for the value (core detail 2).
-        self.network = nn.Sequential(
-            layer_init(nn.Conv2d(4, 32, 8, stride=4)),
-            nn.ReLU(),
-            layer_init(nn.Conv2d(32, 64, 4, stride=2)),
-            nn.ReLU(),
-            layer_init(nn.Conv2d(64, 64, 3, stride=1)),
-            nn.ReLU(),
-            nn.Flatten(),
-            layer_init(nn.Linear(64 * 7 * 7, 512)),
-            nn.ReLU(),
-        )
-        self.actor = layer_init(nn.Linear(512, num_actions), std=0.01)
+        # Atari detail 8: the Nature-DQN CNN (§6.4 names the smaller one of [Mni+16]), shared by policy and value.
+        conv1 = layer_init(nn.Conv2d(4, 32, 8, stride=4))
+        conv2 = layer_init(nn.Conv2d(32, 64, 4, stride=2))
+        conv3 = layer_init(nn.Conv2d(64, 64, 3, stride=1))
+        fc = layer_init(nn.Linear(64 * 7 * 7, 512))
+        self.network = nn.Sequential(conv1, nn.ReLU(), conv2, nn.ReLU(), conv3, nn.ReLU(), nn.Flatten(), fc, nn.ReLU())
+        self.actor = layer_init(nn.Linear(512, num_actions), std=0.01)  # output gains 0.01 and 1 (core detail 2)
         self.critic = layer_init(nn.Linear(512, 1), std=1.0)
 
     def get_value(self, obs):
         return self.critic(self.network(obs / 255.0)).squeeze(-1)
 
     def get_action_and_value(self, obs, action=None):
-        """A sampled action (or the given one), its log-prob under pi(.|s), the entropy, and V(s)."""
+        """An action sampled from pi(.|s) (or the given one), its log-prob, pi(.|s) itself, and V(s)."""
         hidden = self.network(obs / 255.0)  # atari detail 9: scale the uint8 frames to [0, 1] in the network
         probs = Categorical(logits=self.actor(hidden), validate_args=False)
         if action is None:
             action = probs.sample()
-        return action, probs.log_prob(action), probs.entropy(), self.critic(hidden).squeeze(-1)
+        return action, probs.log_prob(action), probs, self.critic(hidden).squeeze(-1)
 
 
 # TRAINING
-def train(args):
-    """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates.
-
-    Returns (agent, run_dir). Raises Stopped after Ctrl-C or SIGTERM, once the checkpoint is saved, and
-    Diverged when the loss or the weights stop being finite."""
+def train(args, stop=()):
+    """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates. Returns
+    (agent, run_dir). Raises Diverged when the loss or the weights stop being finite, and Stopped once main()'s `stop`
+    flag is set (by Ctrl-C or SIGTERM), after the iteration's checkpoint."""
     from torch.utils.tensorboard import SummaryWriter
 
-    # A new run, or the run of --resume, continued with the hyperparameters of its checkpoint.
-    checkpoint = load_checkpoint(args.resume) if args.resume else None
-    if checkpoint:
-        args = resumed_args(checkpoint, args)
+    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
     run_dir = args.run_dir or f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
+    global_step = checkpoint["global_step"] if checkpoint else 0
     device = pick_device(args.device)
     T, N = args.num_steps, args.num_envs
     batch_size = N * T
     num_iterations = args.total_timesteps // batch_size
+    compute_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else minibatch_loss  # backward too
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
-    with contextlib.ExitStack() as on_exit:  # whatever train() changes or opens is undone or closed on every exit
-        stop = on_exit.enter_context(process_settings(args))
-        envs = make_envs(args)  # core detail 1: N envs stepped together, with same-step autoreset
-        on_exit.callback(envs.close)
+    # On --resume, purge_step drops what the run logged after its checkpoint.
+    with (
+        contextlib.closing(make_envs(args)) as envs,
+        SummaryWriter(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
+    ):
         agent = Agent(envs.single_action_space.n).to(device)
         # Core detail 3: Adam with eps 1e-5. The lr is a tensor: annealing changes a number, not what --compile built.
         lr = torch.tensor(args.learning_rate, device=device)
         optimizer = torch.optim.Adam(agent.parameters(), lr=lr, eps=1e-5, fused=True)
-        global_step, start_iteration = restore(checkpoint, agent, optimizer, run_dir)
-        policy = torch.compile(agent.get_action_and_value) if args.compile else agent.get_action_and_value
-        update = torch.compile(update_minibatch) if args.compile else update_minibatch
+        if checkpoint:  # the weights, Adam's moments and the random state where the checkpoint left them
+            agent.load_state_dict(checkpoint["agent"])
+            optimizer.load_state_dict(checkpoint["optimizer"])
+            torch.set_rng_state(checkpoint["torch_rng_state"])
+            print(f"resuming {run_dir} at step {global_step:,}")
 
         # Rollout storage: T steps of N envs. Frames stay uint8 until the network.
         obs = torch.zeros((T, N, 4, 84, 84), dtype=torch.uint8, device=device)
@@ -334,112 +247,81 @@ def train(args):
         # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
         next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + np.arange(N))
         next_obs = torch.as_tensor(next_obs, device=device)
-        games = Games(infos, args.capture_video, args.env_id, f"{run_dir}/videos")
-        episode_return = np.zeros(N)
-        episode_length = np.zeros(N, dtype=np.int64)
+        frame_numbers = infos["episode_frame_number"]
+        lost_life = np.zeros(N, dtype=bool)
+        video = GameVideo(args.env_id, f"{run_dir}/videos", frame_numbers[0]) if args.capture_video else None
         action_names = [a.name for a in envs.ale.get_action_set()]
         fire = action_names.index("FIRE") if args.fire_on_life_loss and "FIRE" in action_names else None
-        # On --resume, purge_step drops what the run logged after its checkpoint: its curves go on without a fold.
-        writer = SummaryWriter(run_dir, purge_step=global_step + 1 if checkpoint else None)
-        on_exit.callback(writer.close)
-        writer.add_text(
-            "hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items())
-        )
-        recent_returns = deque(maxlen=100)
-        start_time = time.time()
-        start_step = global_step
-        last_print = 0.0
+        log = Log(writer, args, global_step, num_iterations * batch_size)
 
         # ALGORITHM 1: for iteration = 1, 2, ...
-        for iteration in range(start_iteration, num_iterations + 1):
+        for iteration in range(checkpoint["iteration"] + 1 if checkpoint else 1, num_iterations + 1):
             # §6.4, Table 5: alpha falls linearly from 1 to 0, scaling the lr (core detail 4) and L^CLIP's clip range.
             alpha = 1.0 - (iteration - 1.0) / num_iterations
             optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate if args.anneal_lr else args.learning_rate)
             clip_coef = torch.tensor(alpha * args.clip_coef if args.anneal_clip else args.clip_coef, device=device)
 
             # ROLLOUT: run the policy pi_theta_old in N environments for T timesteps.
-            with torch.no_grad():
+            with torch.inference_mode():
                 for step in range(T):
                     global_step += N
                     obs[step] = next_obs
-                    action, logprobs[step], _, values[step] = policy(next_obs)
-                    if fire is not None and games.lost_life.any():  # FIRE replaces the action; trained on
-                        action = torch.where(torch.as_tensor(games.lost_life, device=device), fire, action)
-                        _, logprobs[step], _, values[step] = policy(next_obs, action)
+                    action, logprobs[step], _, values[step] = agent.get_action_and_value(next_obs)
+                    if fire is not None and lost_life.any():  # FIRE replaces the action; trained on
+                        action = torch.where(torch.as_tensor(lost_life, device=device), fire, action)
+                        _, logprobs[step], _, values[step] = agent.get_action_and_value(next_obs, action)
                     actions[step] = action
                     next_obs, reward, term, trunc, infos = envs.step(action.cpu().numpy())
                     next_obs = torch.as_tensor(next_obs, device=device)
                     terminations[step] = torch.as_tensor(term)
                     truncations[step] = torch.as_tensor(trunc)
                     rewards[step] = torch.as_tensor(np.sign(reward))  # atari detail 6: learn from the reward's sign
-                    episode_return += reward  # and log the raw score of the whole game, over all its lives
-                    episode_length += 1
-                    finished = games.step(action, term, trunc, infos, global_step)  # a whole game ended: log its score
+                    game_ended = game_over(term, trunc, frame_numbers, infos["episode_frame_number"])
+                    frame_numbers = infos["episode_frame_number"]
+                    lost_life = term & ~game_ended  # atari detail 3: a termination within a game is a lost life
                     for i in np.flatnonzero(trunc):  # the true final observation of an episode cut by the time limit
-                        final_obs = torch.as_tensor(infos["final_obs"][i][None], device=device)
+                        final_obs = torch.as_tensor(infos["final_obs"][i][None], device=device)  # a batch of one
                         final_values[step, i] = agent.get_value(final_obs)[0]
-                    for i in np.flatnonzero(finished):
-                        recent_returns.append(episode_return[i])
-                        writer.add_scalar("charts/episodic_return", episode_return[i], global_step)
-                        writer.add_scalar("charts/episodic_length", episode_length[i], global_step)
-                        episode_return[i] = 0.0
-                        episode_length[i] = 0
+                    log.episodes(reward, game_ended, global_step)  # a game's score: the raw rewards over its lives
+                    if video is not None:
+                        video.step(action[0], game_ended[0], frame_numbers[0], global_step)
 
-                # ADVANTAGES: next_values[t] = V(s_{t+1}); the last is eq. (10)'s bootstrap V(s_T), and where an
-                # episode was truncated, V of its final observation.
-                next_values = torch.cat([values[1:], agent.get_value(next_obs)[None]])
-                next_values = torch.where(truncations.bool(), final_values, next_values)
-                advantages, returns = compute_gae(
-                    rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda
-                )
+                next_value = agent.get_value(next_obs)  # V(s_T), eq. (10)'s bootstrap
+
+            # ADVANTAGES: next_values[t] = V(s_{t+1}), and where an episode was truncated, V of its final observation.
+            next_values = torch.where(truncations.bool(), final_values, torch.cat([values[1:], next_value[None]]))
+            advantages, returns = compute_gae(
+                rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda
+            )
 
             # UPDATE: K epochs of minibatch gradient descent on the flattened batch.
-            batch = {
-                "obs": obs.reshape(-1, 4, 84, 84),
-                "actions": actions.reshape(-1),
-                "logprobs": logprobs.reshape(-1),
-                "advantages": advantages.reshape(-1),
-                "returns": returns.reshape(-1),
-                "values": values.reshape(-1),
-            }
+            rollout = dict(
+                obs=obs, actions=actions, logprobs=logprobs, advantages=advantages, returns=returns, values=values
+            )
+            batch = {key: value.flatten(0, 1) for key, value in rollout.items()}
             update_stats = []
             for _epoch in range(args.update_epochs):
-                b_inds = torch.randperm(batch_size, device=device)  # core detail 6: a new shuffle each epoch
-                for start in range(0, batch_size, args.minibatch_size):
-                    mb_inds = b_inds[start : start + args.minibatch_size]
-                    mb = {key: value[mb_inds] for key, value in batch.items()}
-                    update_stats.append(update(agent, optimizer, mb, clip_coef, args))
+                # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches.
+                for mb_inds in torch.randperm(batch_size, device=device).split(args.minibatch_size):
+                    loss, stats = compute_loss(agent, batch, mb_inds, clip_coef, args)
+                    gradient_step(agent, optimizer, loss, args)
+                    update_stats.append(stats)
 
             # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
-            losses = {
-                name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]
-            }
-            losses["explained_variance"] = (
-                1 - (batch["returns"] - batch["values"]).var() / batch["returns"].var()
-            ).item()
-            sps = int((global_step - start_step) / (time.time() - start_time))
-            writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"].item(), global_step)
-            writer.add_scalar("charts/SPS", sps, global_step)
+            losses = {name: torch.stack([s[name] for s in update_stats]).mean().item() for name in update_stats[0]}
+            residual = batch["returns"] - batch["values"]
+            losses["explained_variance"] = (1 - residual.var() / batch["returns"].var()).item()
+            log.update(global_step, optimizer.param_groups[0]["lr"].item(), losses)
             writer.add_scalar("charts/clip_coef", clip_coef.item(), global_step)
-            for name, value in losses.items():
-                writer.add_scalar(f"losses/{name}", value, global_step)
-            if time.time() - last_print > 10 or iteration == num_iterations:
-                last_print = time.time()
-                print(progress(global_step, num_iterations * batch_size, sps, recent_returns), flush=True)
 
             # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
             if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
-                raise Diverged(
-                    f"the loss or the weights are not finite after iteration {iteration}; try a smaller"
-                    f" --learning-rate (the last finite checkpoint, if any, is {checkpoint_path})"
-                )
+                raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
             if stop or iteration % args.save_every == 0 or iteration == num_iterations:
                 writer.flush()  # the curve on disk reaches at least the checkpoint's step
                 save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration)
             if stop:
-                raise Stopped(
-                    f"saved step {global_step:,} to {checkpoint_path}; continue with --resume {checkpoint_path}"
-                )
+                raise Stopped(f"saved step {global_step:,}: continue with --resume {checkpoint_path}")
     print(f"saved {checkpoint_path}")
     return agent, run_dir
 
@@ -447,171 +329,215 @@ def train(args):
 # EVALUATION
 def evaluate(args):
     """Play --eval-episodes whole games with the sampled policy of --eval-checkpoint (its argmax can stall)."""
-    checkpoint = load_checkpoint(args.eval_checkpoint)
-    train_args = resumed_args(checkpoint, args)
+    checkpoint, train_args = load_checkpoint(args.eval_checkpoint, args)
     device = pick_device(args.device)
-    envs = make_envs(train_args, num_envs=1, training=False)  # whole games: no life-loss terminations
-    agent = Agent(envs.single_action_space.n).to(device)
-    agent.load_state_dict(checkpoint["agent"])
-    torch.manual_seed(args.seed)
-    returns = []
-    for game in range(args.eval_episodes):
-        next_obs, infos = envs.reset(seed=args.seed + game)
-        done = False
-        game_return = 0.0
-        actions = []
-        while not done:
-            with torch.no_grad():
-                action, _, _, _ = agent.get_action_and_value(torch.as_tensor(next_obs, device=device))
-            actions.append(int(action[0]))
-            next_obs, reward, term, trunc, _ = envs.step(action.cpu().numpy())
-            game_return += float(reward[0])
-            done = bool(term[0] or trunc[0])
-        returns.append(game_return)
-        if args.capture_video:
-            path = f"{train_args.run_dir}/videos-eval/eval-game-{game}.mp4"
-            write_video(train_args.env_id, infos["episode_frame_number"][0], actions, path)
-    envs.close()
+    with contextlib.closing(make_envs(train_args, num_envs=1, training=False)) as envs:  # whole games: no life losses
+        agent = Agent(envs.single_action_space.n)
+        agent.to(device).load_state_dict(checkpoint["agent"])
+        torch.manual_seed(args.seed)
+        returns = []
+        for game in range(args.eval_episodes):
+            next_obs, infos = envs.reset(seed=args.seed + game)
+            done = False
+            game_return = 0.0
+            actions = []
+            while not done:
+                with torch.inference_mode():
+                    action, _, _, _ = agent.get_action_and_value(torch.as_tensor(next_obs, device=device))
+                actions.append(int(action[0]))
+                next_obs, reward, term, trunc, _ = envs.step(action.cpu().numpy())
+                game_return += float(reward[0])
+                done = bool(term[0] or trunc[0])
+            returns.append(game_return)
+            if args.capture_video:
+                path = f"{train_args.run_dir}/videos-eval/eval-game-{game}.mp4"
+                write_video(train_args.env_id, infos["episode_frame_number"][0], actions, path)
     summary = f"return {np.mean(returns):.1f} ± {np.std(returns):.1f} over {len(returns)} episodes"
     print(f"eval {train_args.env_id} step {checkpoint['global_step']:,}: {summary}")
     return returns
 
 
-# MACHINERY: the process's settings, progress, checkpoints and argument checks.
-class Stopped(Exception):
-    """Ctrl-C or SIGTERM stopped the run at the end of an iteration, after its checkpoint was saved."""
+# ATARI GAMES: what an id means, and videos replayed from a game's reset and actions
+def atari_game(env_id):
+    """The ROM and sticky-action probability of an id: <Game>NoFrameskip-v4 repeats no action (the paper's games),
+    ALE/<Game>-v5 the last one with probability 0.25. Else a ValueError, with the ids a loose name could mean."""
+    import ale_py
+    import gymnasium as gym  # importing ale_py registered its games
+
+    ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)  # no banner on stderr
+    if re.fullmatch(r"\w+NoFrameskip-v4|ALE/\w+-v5", env_id) and env_id in gym.registry:
+        kwargs = gym.registry[env_id].kwargs
+        return kwargs["game"], kwargs["repeat_action_probability"]
+    names = {key[4:-3].lower(): key[4:-3] for key in gym.registry if key.startswith("ALE/") and key.endswith("-v5")}
+    name = names.get(re.sub(r"(NoFrameskip|Deterministic)?(-v\d+)?$", "", env_id.split("/")[-1]).lower())
+    could_mean = f"; did you mean {name}NoFrameskip-v4 (the paper's) or ALE/{name}-v5?" if name else ""
+    games = "Atari games, with their discrete action space, <Game>NoFrameskip-v4 or ALE/<Game>-v5"
+    raise ValueError(f"unknown env id {env_id!r}: this script plays {games}{could_mean}")
 
 
-class Diverged(Exception):
-    """The loss or the weights stopped being finite; the last finite checkpoint stays on disk."""
+class GameVideo:
+    """With --capture-video, env 0's games 0, 1, 8, 27, ...: write_video replays each from its reset and actions."""
+
+    def __init__(self, env_id, video_dir, reset_frames):
+        self.env_id = env_id
+        self.video_dir = video_dir
+        self.reset_frames = reset_frames
+        self.actions = []
+        self.games = 0
+
+    def step(self, action, game_ended, frame_number, global_step):
+        self.actions.append(int(action))
+        if game_ended:
+            if self.games == round(self.games ** (1 / 3)) ** 3:
+                path = f"{self.video_dir}/step-{global_step}-game-{self.games}.mp4"
+                write_video(self.env_id, self.reset_frames, self.actions, path)
+            self.games += 1
+            self.actions = []
+            self.reset_frames = frame_number
 
 
-@contextlib.contextmanager
-def process_settings(args):
-    """Until the run ends, by a return or an error: Ctrl-C and SIGTERM only set a flag, which the loop checks; torch
-    uses --torch-threads threads; and with --compile, compiled code samples with torch's generator, as eager code."""
-    stop = []
-    previous_threads = torch.get_num_threads()
-    previous_handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        torch.set_num_threads(args.torch_threads)
-        for sig in previous_handlers:
-            signal.signal(sig, lambda signum, frame: stop.append(signum))
-        with torch._inductor.config.patch(fallback_random=True) if args.compile else contextlib.nullcontext():
-            yield stop
-    finally:
-        torch.set_num_threads(previous_threads)
-        for sig, handler in previous_handlers.items():
-            signal.signal(sig, handler)
+def write_video(env_id, reset_frames, actions, path):
+    """Replay a game in a new emulator, every frame in colour (210x160) at 60 Hz, to an mp4. Without sticky actions the
+    same reset (ale-py's: FIRE if the game has it, then no-ops, reset_frames in all) and actions play the same game."""
+    import ale_py
+    import imageio.v2 as imageio
+
+    ale = ale_py.ALEInterface()
+    ale.setFloat("repeat_action_probability", 0.0)
+    ale.loadROM(ale_py.roms.get_rom_path(atari_game(env_id)[0]))
+    ale.reset_game()  # as ale-py's reset does: some games (BeamRider) play differently without it
+    action_set = ale.getMinimalActionSet()
+    fire = [ale_py.Action.FIRE] * (ale_py.Action.FIRE in action_set)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    moves = (
+        fire + [ale_py.Action.NOOP] * (reset_frames - len(fire)) + [action_set[a] for a in actions for _ in range(4)]
+    )
+    with imageio.get_writer(path, fps=60, macro_block_size=1) as video:
+        for action in moves:
+            ale.act(action)
+            video.append_data(ale.getScreenRGB())
+
+
+# MACHINERY. A run ends early Stopped (Ctrl-C or SIGTERM, after a checkpoint) or Diverged (last finite one kept).
+class Stopped(Exception): ...
+
+
+class Diverged(Exception): ...
 
 
 def pick_device(name):
     return torch.device(("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name)
 
 
-def progress(global_step, total_steps, sps, recent_returns):
-    mean = f"{np.mean(recent_returns):.1f}" if recent_returns else "n/a"
-    eta = (total_steps - global_step) / max(sps, 1) / 60
-    recent = f"return (last {len(recent_returns)}) {mean}"
-    return f"step {global_step:,}/{total_steps:,} | SPS {sps} | {recent} | ETA {eta:.1f} min"
+class Log:
+    """The run's TensorBoard scalars, and its progress on the console every 10 s and at the end."""
+
+    def __init__(self, writer, args, global_step, total_steps):
+        table = "\n".join(f"|{name}|{value}|" for name, value in asdict(args).items())
+        writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+        self.writer = writer
+        self.total_steps = total_steps
+        self.start_step = global_step
+        self.start_time = time.time()
+        self.printed = 0.0
+        self.returns = np.zeros(args.num_envs)  # of the episodes under way, and their lengths
+        self.lengths = np.zeros(args.num_envs, dtype=np.int64)
+        self.recent = deque(maxlen=100)  # the returns of the last 100 episodes
+
+    def episodes(self, reward, ended, step):
+        """Add each env's reward to its episode; log the return and length of those that `ended` with it."""
+        self.returns += reward
+        self.lengths += 1
+        for i in np.flatnonzero(ended):
+            self.recent.append(self.returns[i])
+            self.writer.add_scalar("charts/episodic_return", self.returns[i], step)
+            self.writer.add_scalar("charts/episodic_length", self.lengths[i], step)
+        self.returns[ended] = 0.0
+        self.lengths[ended] = 0
+
+    def update(self, step, learning_rate, losses):
+        sps = int((step - self.start_step) / (time.time() - self.start_time))
+        self.writer.add_scalar("charts/learning_rate", learning_rate, step)
+        self.writer.add_scalar("charts/SPS", sps, step)
+        for name, value in losses.items():
+            self.writer.add_scalar(f"losses/{name}", value, step)
+        if time.time() - self.printed > 10 or step == self.total_steps:
+            self.printed = time.time()
+            mean = np.mean(self.recent) if self.recent else np.nan  # the return of the last 100 episodes
+            eta = (self.total_steps - step) / max(sps, 1) / 60
+            print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean:.1f} | ETA {eta:.1f} min", flush=True)
 
 
 # A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
 RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
-FORMAT = ("ppo-checkpoint-v1", SCRIPT)  # what a checkpoint says it is: a checkpoint of this script
-# Flags that must be positive, and flags that must lie in [low, high]. Every float must be finite too.
-POSITIVE = "total_timesteps num_envs num_steps minibatch_size update_epochs save_every eval_episodes".split()
-POSITIVE += "torch_threads learning_rate clip_coef max_grad_norm max_episode_frames".split()
-BOUNDS = {"gamma": (0, 1), "gae_lambda": (0, 1), "vf_coef": (0, math.inf), "ent_coef": (0, math.inf)}
+FORMAT = "ppo-checkpoint-v1"
 
 
-def resumed_args(checkpoint, args):
-    run_dir = os.path.dirname(os.path.abspath(args.resume or args.eval_checkpoint))
-    runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
-    return Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
-
-
-def restore(checkpoint, agent, optimizer, run_dir):
-    """The step and the iteration a run starts from: those after its checkpoint's, whose state it loads, if any."""
-    if checkpoint is None:
-        return 0, 1
-    agent.load_state_dict(checkpoint["agent"])
-    optimizer.load_state_dict(checkpoint["optimizer"])
-    torch.set_rng_state(checkpoint["torch_rng_state"])
-    print(f"resuming {run_dir} at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})")
-    return checkpoint["global_step"], checkpoint["iteration"] + 1
-
-
-def save_checkpoint(path, args, agent, optimizer, global_step, iteration):
+def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more):
     # Tensors, numbers and strings, loadable with torch.load(weights_only=True); written, then renamed, atomically.
-    checkpoint = {
-        "format": FORMAT[0],
-        "script": FORMAT[1],
-        "args": asdict(args),
-        "agent": agent.state_dict(),
-        "optimizer": optimizer.state_dict(),
-        "global_step": global_step,
-        "iteration": iteration,
-        "torch_rng_state": torch.get_rng_state(),
-    }
-    torch.save(checkpoint, f"{path}.tmp")
+    state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "torch_rng_state": torch.get_rng_state()}
+    numbers = {"global_step": global_step, "iteration": iteration, **more}
+    torch.save({"format": FORMAT, "script": SCRIPT, "args": asdict(args), **state, **numbers}, f"{path}.tmp")
     os.replace(f"{path}.tmp", path)
 
 
-def load_checkpoint(path):
-    """A checkpoint of this script, loaded on the CPU; a ValueError with a one-line reason if it is not one."""
+def load_checkpoint(path, args):
+    """A checkpoint of this script, on the CPU, and the Args of its run; else a ValueError with a one-line reason."""
     if not os.path.isfile(path):
         raise ValueError(f"checkpoint {path!r} does not exist")
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({type(e).__name__})") from None
-    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != FORMAT:
+    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, SCRIPT):
         raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
-    return checkpoint
+    runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
+    run_dir = os.path.dirname(os.path.abspath(path))
+    return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
+
+
+# Every number must be finite and positive, except these, which have ranges of their own.
+RANGES = {"seed": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
+RANGES |= {"ent_coef": (0, math.inf), "vf_coef": (0, math.inf)}
 
 
 def check_args(args):
     """Reject bad input before anything heavy loads, with a one-line reason (a ValueError)."""
     for name, value in asdict(args).items():
         flag = "--" + name.replace("_", "-")
-        if isinstance(value, float) and not math.isfinite(value):
+        low, high = RANGES.get(name, (0, math.inf))
+        if type(value) not in (int, float):  # strings, booleans and None have no range
+            continue
+        if not math.isfinite(value):
             raise ValueError(f"{flag} must be a finite number, got {value}")
-        if name in POSITIVE and value <= 0:
+        if name not in RANGES and value <= 0:
             raise ValueError(f"{flag} must be positive, got {value}")
-        if name in BOUNDS and not BOUNDS[name][0] <= value <= BOUNDS[name][1]:
-            raise ValueError(f"{flag} must be in [{BOUNDS[name][0]}, {BOUNDS[name][1]}], got {value}")
+        if not low <= value <= high:
+            raise ValueError(f"{flag} must be in [{low}, {high}], got {value}")
     batch = args.num_envs * args.num_steps
     if batch % args.minibatch_size:
         raise ValueError(f"--minibatch-size {args.minibatch_size} does not divide the batch of {batch} steps")
-    if args.resume is None and args.eval_checkpoint is None and args.total_timesteps < batch:
+    if not (args.resume or args.eval_checkpoint) and args.total_timesteps < batch:
         raise ValueError(f"--total-timesteps {args.total_timesteps} is less than one batch of {batch} steps")
     if args.device not in ("auto", "cpu") and not (args.device.startswith("cuda") and torch.cuda.is_available()):
         raise ValueError(f"--device {args.device} is not available here; use auto or cpu")
-    if args.resume is not None or args.eval_checkpoint is not None:
-        args = resumed_args(load_checkpoint(args.resume or args.eval_checkpoint), args)
+    if args.resume or args.eval_checkpoint:
+        _, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
     repeat_action_probability = atari_game(args.env_id)[1]  # a ValueError for an id that is not an Atari game's
     if args.capture_video and repeat_action_probability > 0:
         raise ValueError(f"--capture-video replays games, which the sticky actions of {args.env_id} make impossible")
-    if args.eval_checkpoint is None:
-        check_run_dir(args)
-
-
-def check_run_dir(args):
-    if args.run_dir is None:
+    run_dir = args.run_dir
+    if run_dir is None or args.eval_checkpoint:  # train() makes the default one; evaluation writes only videos
         return
-    if os.path.isfile(args.run_dir):
-        raise ValueError(f"--run-dir {args.run_dir} is a file, not a directory")
-    if args.resume is None and os.path.isdir(args.run_dir) and any("tfevents" in f for f in os.listdir(args.run_dir)):
-        raise ValueError(
-            f"--run-dir {args.run_dir} already holds a run: continue it with --resume {args.run_dir}/checkpoint.pt,"
-            " or pick a new directory"
-        )
+    if os.path.isfile(run_dir):
+        raise ValueError(f"--run-dir {run_dir} is a file, not a directory")
+    if not args.resume and os.path.isdir(run_dir) and any("tfevents" in f for f in os.listdir(run_dir)):
+        raise ValueError(f"--run-dir {run_dir} already holds a run: continue it with --resume {run_dir}/checkpoint.pt")
     try:
-        os.makedirs(args.run_dir, exist_ok=True)
-        tempfile.TemporaryFile(dir=args.run_dir).close()
+        os.makedirs(run_dir, exist_ok=True)
+        tempfile.TemporaryFile(dir=run_dir).close()
     except OSError as e:
-        raise ValueError(f"--run-dir {args.run_dir} cannot be created or written: {e.strerror}") from None
+        raise ValueError(f"--run-dir {run_dir} cannot be created or written: {e.strerror}") from None
 
 
 def main():
@@ -623,8 +549,15 @@ def main():
     except ValueError as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts
         sys.exit(2)
+    torch.set_num_threads(args.torch_threads)
+    if args.eval_checkpoint is not None:
+        return evaluate(args)
+    # A training run owns the process: Ctrl-C and SIGTERM only set the flag that train() reads after each iteration.
+    stop = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: stop.append(signum))
     try:
-        evaluate(args) if args.eval_checkpoint is not None else train(args)
+        train(args, stop)
     except Stopped as e:
         print(e)
         sys.exit(130)

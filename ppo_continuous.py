@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 import torch.nn as nn
-from torch.distributions import Normal
+from torch.distributions import Independent, Normal
 
 SCRIPT = os.path.basename(__file__)
 
@@ -34,11 +34,12 @@ class Args:
     exp_name: str = SCRIPT[: -len(".py")]  # the experiment's name, part of the run directory's
     seed: int = 1  # seed of torch and of the environments
     device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto: the CPU, where small MLPs run fastest)
-    compile: bool = False  # torch.compile the policy step and the minibatch update (slower to start, faster to run)
+    compile: bool = False  # torch.compile the minibatch update (slower to start, faster to run)
     torch_threads: int = 1  # torch CPU threads
     run_dir: str | None = None  # where the logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
-    # film episodes 0, 1, 8, 27, ... of the first env in training (every 1000th after 1000), and each evaluation episode
-    capture_video: bool = False
+    capture_video: bool = (
+        False  # film episodes 0, 1, 8, 27, ..., 1000, 2000, ... of env 0, and every evaluation episode
+    )
     # Algorithm: the paper's MuJoCo settings (Table 3) where it gives one, else the implementation detail cited
     env_id: str = "Hopper-v5"  # the id of a gymnasium environment with a Box action space
     total_timesteps: int = 1_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 1M)
@@ -54,8 +55,7 @@ class Args:
     clip_coef: float = 0.2  # clip range epsilon of L^CLIP (paper: 0.2), also the value loss's
     clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef (core detail 9; not in eq. (9))
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
-    # c1 of eq. (9), on the squared error (V - V_targ)^2; with separate networks it acts only through the gradient clip
-    vf_coef: float = 0.25
+    vf_coef: float = 0.25  # c1 of eq. (9); with separate networks it acts only through the gradient clip
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
     norm_obs: bool = True  # normalize observations with running statistics (continuous details 6-7)
@@ -68,11 +68,10 @@ class Args:
 
 # THE MATH
 def compute_gae(rewards, values, next_values, terminations, truncations, gamma, gae_lambda):
-    """Generalized advantage estimation, eq. (11)-(12), over [T, N] tensors.
-
-    next_values[t] is V of the observation that step t reached: after a time-limit truncation, the
-    final observation's, which is bootstrapped (Pardo et al. 2018); no advantage flows across an
-    episode's end. The returns A + V are the value function's TD(lambda) targets (core detail 5).
+    """Generalized advantage estimation, eq. (11)-(12), over [T, N] tensors. next_values[t] is V of the observation
+    that step t reached: after a time-limit truncation, the final observation's, which is bootstrapped (Pardo et al.
+    2018); no advantage flows across an episode's end. The returns A + V are the value function's TD(lambda) targets
+    (core detail 5).
 
     >>> one = torch.ones(3, 1)
     >>> adv, ret = compute_gae(one, 0 * one, 0 * one, torch.tensor([[0.0], [0.0], [1.0]]), 0 * one, 0.5, 1.0)
@@ -104,10 +103,9 @@ def clipped_surrogate_loss(ratio, advantages, clip_coef):
 
 
 def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
-    """L^VF of eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9).
-
-    The clipped form is not the paper's: the larger of the errors of the new value and of the old
-    value moved at most clip_coef towards it."""
+    """L^VF of eq. (9), the squared error (V - V_targ)^2 against the returns, optionally clipped (core detail 9). The
+    clipped form is not the paper's: the larger of the errors of the new value and of the old value moved at most
+    clip_coef towards it."""
     v_loss_unclipped = (newvalue - returns) ** 2
     if not clip_vloss:
         return v_loss_unclipped.mean()
@@ -115,9 +113,10 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
     return torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
 
 
-def update_minibatch(agent, optimizer, mb, clip_coef, args):
-    """One step of gradient descent on minus L^{CLIP+VF+S}, eq. (9), for the minibatch `mb`; its statistics."""
-    _, newlogprob, entropy, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
+def minibatch_loss(agent, batch, mb_inds, clip_coef, args):
+    """Minus L^{CLIP+VF+S}, eq. (9), on the minibatch mb_inds of the batch, and the statistics of its terms."""
+    mb = {key: value[mb_inds] for key, value in batch.items()}
+    _, newlogprob, probs, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
     logratio = newlogprob - mb["logprobs"]
     ratio = logratio.exp()  # r_t(theta), eq. (6)
     advantages = mb["advantages"]
@@ -125,24 +124,23 @@ def update_minibatch(agent, optimizer, mb, clip_coef, args):
         advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
     pg_loss = clipped_surrogate_loss(ratio, advantages, clip_coef)
     v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
-    entropy = entropy.mean()
+    entropy = probs.entropy().mean()
     loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
+    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy, "loss": loss}
+    # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
+    stats["old_approx_kl"] = (-logratio).mean()
+    stats["approx_kl"] = ((ratio - 1) - logratio).mean()
+    stats["clipfrac"] = ((ratio - 1.0).abs() > clip_coef).float().mean()
+    return loss, {name: stat.detach() for name, stat in stats.items()}
+
+
+def gradient_step(agent, optimizer, loss, args):
+    """One step of gradient descent on the loss."""
     optimizer.zero_grad()
     loss.backward()
     if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
         nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
     optimizer.step()
-    # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
-    stats = {
-        "policy_loss": pg_loss,
-        "value_loss": v_loss,
-        "entropy": entropy,
-        "old_approx_kl": (-logratio).mean(),
-        "approx_kl": ((ratio - 1) - logratio).mean(),
-        "clipfrac": ((ratio - 1.0).abs() > clip_coef).float().mean(),
-        "loss": loss,
-    }
-    return {name: stat.detach() for name, stat in stats.items()}
 
 
 # ENVIRONMENT
@@ -179,6 +177,11 @@ def layer_init(layer, std=2**0.5, bias_const=0.0):
     return layer
 
 
+def mlp(n_in, n_out, std):
+    hidden = [layer_init(nn.Linear(n_in, 64)), nn.Tanh(), layer_init(nn.Linear(64, 64)), nn.Tanh()]
+    return nn.Sequential(*hidden, layer_init(nn.Linear(64, n_out), std=std))
+
+
 class RunningMeanStd(nn.Module):
     """Running mean and variance of numpy batches [B, *shape] (Chan et al.'s parallel algorithm), kept by
     the agent, not an env wrapper: a checkpoint holds them, and evaluation sees the inputs of training."""
@@ -190,14 +193,11 @@ class RunningMeanStd(nn.Module):
         self.count = epsilon
 
     def update(self, x):
-        batch_mean = x.mean(0)
-        batch_var = x.var(0)
         batch_count = x.shape[0]
-        delta = batch_mean - self.mean
+        delta = x.mean(0) - self.mean
         total = self.count + batch_count
-        self.var = (
-            self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total
-        ) / total
+        m2 = self.var * self.count + x.var(0) * batch_count + delta**2 * self.count * batch_count / total
+        self.var = m2 / total
         self.mean = self.mean + delta * batch_count / total
         self.count = total
 
@@ -215,20 +215,8 @@ class Agent(nn.Module):
         super().__init__()
         # Core detail 13 / continuous detail 4: separate 64x64 tanh networks (paper §6.1). Output gains
         # (core detail 2): 1 for the value, 0.01 for the policy mean, so that pi starts near N(0, 1).
-        self.critic = nn.Sequential(
-            layer_init(nn.Linear(obs_dim, 64)),
-            nn.Tanh(),
-            layer_init(nn.Linear(64, 64)),
-            nn.Tanh(),
-            layer_init(nn.Linear(64, 1), std=1.0),
-        )
-        self.actor_mean = nn.Sequential(
-            layer_init(nn.Linear(obs_dim, 64)),
-            nn.Tanh(),
-            layer_init(nn.Linear(64, 64)),
-            nn.Tanh(),
-            layer_init(nn.Linear(64, act_dim), std=0.01),
-        )
+        self.critic = mlp(obs_dim, 1, std=1.0)
+        self.actor_mean = mlp(obs_dim, act_dim, std=0.01)
         # Continuous detail 2: a state-independent log std, a learned vector starting at 0 (std 1).
         self.actor_logstd = nn.Parameter(torch.zeros(act_dim))
         self.norm_obs = norm_obs
@@ -258,49 +246,48 @@ class Agent(nn.Module):
         return self.critic(obs).squeeze(-1)
 
     def get_action_and_value(self, obs, action=None):
-        """A sampled action (or the given one), its log-prob under pi(.|s), the entropy, and V(s)."""
-        # Continuous details 1 and 3: a diagonal Gaussian; log-probs sum over the action's dimensions.
-        # Its arguments are valid by construction (train() stops if they stop being finite).
-        probs = Normal(self.actor_mean(obs), self.actor_logstd.exp(), validate_args=False)
+        """An action sampled from pi(.|s) (or the given one), its log-prob, pi(.|s) itself, and V(s)."""
+        # Continuous details 1 and 3: a diagonal Gaussian, whose log-probs (and entropy) sum over the action's
+        # dimensions. Its arguments are valid by construction (train() stops if they stop being finite).
+        probs = Independent(Normal(self.actor_mean(obs), self.actor_logstd.exp(), validate_args=False), 1)
         if action is None:
             action = probs.sample()
-        return action, probs.log_prob(action).sum(-1), probs.entropy().sum(-1), self.get_value(obs)
+        return action, probs.log_prob(action), probs, self.get_value(obs)
 
 
 # TRAINING
-def train(args):
-    """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates.
-
-    Returns (agent, run_dir). Raises Stopped after Ctrl-C or SIGTERM, once the checkpoint is saved, and
-    Diverged when the loss or the weights stop being finite."""
+def train(args, stop=()):
+    """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates. Returns
+    (agent, run_dir). Raises Diverged when the loss or the weights stop being finite, and Stopped once main()'s `stop`
+    flag is set (by Ctrl-C or SIGTERM), after the iteration's checkpoint."""
     from torch.utils.tensorboard import SummaryWriter
 
-    # A new run, or the run of --resume, continued with the hyperparameters of its checkpoint.
-    checkpoint = load_checkpoint(args.resume) if args.resume else None
-    if checkpoint:
-        args = resumed_args(checkpoint, args)
+    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
     run_dir = args.run_dir or f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
+    global_step = checkpoint["global_step"] if checkpoint else 0
     device = pick_device(args.device)
     T, N = args.num_steps, args.num_envs
     batch_size = N * T
     num_iterations = args.total_timesteps // batch_size
+    compute_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else minibatch_loss  # backward too
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
-    with contextlib.ExitStack() as on_exit:  # whatever train() changes or opens is undone or closed on every exit
-        stop = on_exit.enter_context(process_settings(args))
-        # Videos are named by the step they start from, so that a resumed run overwrites none.
-        video_prefix = f"from-step-{checkpoint['global_step'] if checkpoint else 0}"
-        envs = make_envs(args, f"{run_dir}/videos", video_prefix)  # core detail 1
-        on_exit.callback(envs.close)
+    # Videos are named by their first step. On --resume, purge_step drops what the run logged after its checkpoint.
+    with (
+        contextlib.closing(make_envs(args, f"{run_dir}/videos", f"from-step-{global_step}")) as envs,
+        SummaryWriter(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
+    ):
         obs_dim = envs.single_observation_space.shape[0]
         act_dim = envs.single_action_space.shape[0]
         agent = Agent(obs_dim, act_dim, norm_obs=args.norm_obs).to(device)
         # Core detail 3: Adam with eps 1e-5. The lr is a tensor: annealing changes a number, not what --compile built.
         lr = torch.tensor(args.learning_rate, device=device)
         optimizer = torch.optim.Adam(agent.parameters(), lr=lr, eps=1e-5, fused=True)
-        global_step, start_iteration = restore(checkpoint, agent, optimizer, run_dir)
-        policy = torch.compile(agent.get_action_and_value) if args.compile else agent.get_action_and_value
-        update = torch.compile(update_minibatch) if args.compile else update_minibatch
+        if checkpoint:  # the weights, Adam's moments and the random state where the checkpoint left them
+            agent.load_state_dict(checkpoint["agent"])
+            optimizer.load_state_dict(checkpoint["optimizer"])
+            torch.set_rng_state(checkpoint["torch_rng_state"])
+            print(f"resuming {run_dir} at step {global_step:,}")
 
         # Rollout storage: T steps of N envs. Observations are stored normalized: they are the inputs.
         obs = torch.zeros((T, N, obs_dim), device=device)
@@ -309,31 +296,20 @@ def train(args):
         # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
         next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + np.arange(N)).tolist())
         next_obs = torch.as_tensor(agent.normalize_obs(next_obs, update=True), device=device)
-        episode_return = np.zeros(N)
-        episode_length = np.zeros(N, dtype=np.int64)
-        # On --resume, purge_step drops what the run logged after its checkpoint: its curves go on without a fold.
-        writer = SummaryWriter(run_dir, purge_step=global_step + 1 if checkpoint else None)
-        on_exit.callback(writer.close)
-        writer.add_text(
-            "hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items())
-        )
-        recent_returns = deque(maxlen=100)
-        start_time = time.time()
-        start_step = global_step
-        last_print = 0.0
+        log = Log(writer, args, global_step, num_iterations * batch_size)
 
         # ALGORITHM 1: for iteration = 1, 2, ...
-        for iteration in range(start_iteration, num_iterations + 1):
+        for iteration in range(checkpoint["iteration"] + 1 if checkpoint else 1, num_iterations + 1):
             # Core detail 4: anneal the learning rate linearly to 0; epsilon stays fixed, as in §6.1.
             alpha = 1.0 - (iteration - 1.0) / num_iterations
             optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate if args.anneal_lr else args.learning_rate)
 
             # ROLLOUT: run the policy pi_theta_old in N environments for T timesteps.
-            with torch.no_grad():
+            with torch.inference_mode():
                 for step in range(T):
                     global_step += N
                     obs[step] = next_obs
-                    action, logprobs[step], _, values[step] = policy(next_obs)
+                    action, logprobs[step], _, values[step] = agent.get_action_and_value(next_obs)
                     actions[step] = action
                     # Continuous detail 5: clip the action for the env only; the ratio uses the sample's log-prob.
                     action = np.clip(action.cpu().numpy(), envs.single_action_space.low, envs.single_action_space.high)
@@ -344,73 +320,46 @@ def train(args):
                     rewards[step] = torch.as_tensor(reward)
                     if args.norm_reward:  # continuous details 8-9
                         rewards[step] = torch.as_tensor(agent.normalize_reward(reward, term | trunc, args.gamma))
-                    episode_return += reward
-                    episode_length += 1
-                    finished = term | trunc  # an episode ended: log its return, the raw rewards' sum
                     for i in np.flatnonzero(trunc):  # the true final observation of an episode cut by the time limit
-                        final_obs = agent.normalize_obs(infos["final_obs"][i])
-                        final_values[step, i] = agent.get_value(torch.as_tensor(final_obs, device=device))
-                    for i in np.flatnonzero(finished):
-                        recent_returns.append(episode_return[i])
-                        writer.add_scalar("charts/episodic_return", episode_return[i], global_step)
-                        writer.add_scalar("charts/episodic_length", episode_length[i], global_step)
-                        episode_return[i] = 0.0
-                        episode_length[i] = 0
+                        final_obs = torch.as_tensor(agent.normalize_obs(infos["final_obs"][i]), device=device)
+                        final_values[step, i] = agent.get_value(final_obs)
+                    log.episodes(reward, term | trunc, global_step)  # the raw rewards' sum is an episode's return
 
-                # ADVANTAGES: next_values[t] = V(s_{t+1}); the last is eq. (10)'s bootstrap V(s_T), and where an
-                # episode was truncated, V of its final observation.
-                next_values = torch.cat([values[1:], agent.get_value(next_obs)[None]])
-                next_values = torch.where(truncations.bool(), final_values, next_values)
-                advantages, returns = compute_gae(
-                    rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda
-                )
+                next_value = agent.get_value(next_obs)  # V(s_T), eq. (10)'s bootstrap
+
+            # ADVANTAGES: next_values[t] = V(s_{t+1}), and where an episode was truncated, V of its final observation.
+            next_values = torch.where(truncations.bool(), final_values, torch.cat([values[1:], next_value[None]]))
+            advantages, returns = compute_gae(
+                rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda
+            )
 
             # UPDATE: K epochs of minibatch gradient descent on the flattened batch.
-            batch = {
-                "obs": obs.reshape(-1, obs_dim),
-                "actions": actions.reshape(-1, act_dim),
-                "logprobs": logprobs.reshape(-1),
-                "advantages": advantages.reshape(-1),
-                "returns": returns.reshape(-1),
-                "values": values.reshape(-1),
-            }
+            rollout = dict(
+                obs=obs, actions=actions, logprobs=logprobs, advantages=advantages, returns=returns, values=values
+            )
+            batch = {key: value.flatten(0, 1) for key, value in rollout.items()}
             update_stats = []
             for _epoch in range(args.update_epochs):
-                b_inds = torch.randperm(batch_size, device=device)  # core detail 6: a new shuffle each epoch
-                for start in range(0, batch_size, args.minibatch_size):
-                    mb_inds = b_inds[start : start + args.minibatch_size]
-                    mb = {key: value[mb_inds] for key, value in batch.items()}
-                    update_stats.append(update(agent, optimizer, mb, args.clip_coef, args))
+                # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches.
+                for mb_inds in torch.randperm(batch_size, device=device).split(args.minibatch_size):
+                    loss, stats = compute_loss(agent, batch, mb_inds, args.clip_coef, args)
+                    gradient_step(agent, optimizer, loss, args)
+                    update_stats.append(stats)
 
             # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
-            losses = {
-                name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]
-            }
-            losses["explained_variance"] = (
-                1 - (batch["returns"] - batch["values"]).var() / batch["returns"].var()
-            ).item()
-            sps = int((global_step - start_step) / (time.time() - start_time))
-            writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"].item(), global_step)
-            writer.add_scalar("charts/SPS", sps, global_step)
-            for name, value in losses.items():
-                writer.add_scalar(f"losses/{name}", value, global_step)
-            if time.time() - last_print > 10 or iteration == num_iterations:
-                last_print = time.time()
-                print(progress(global_step, num_iterations * batch_size, sps, recent_returns), flush=True)
+            losses = {name: torch.stack([s[name] for s in update_stats]).mean().item() for name in update_stats[0]}
+            residual = batch["returns"] - batch["values"]
+            losses["explained_variance"] = (1 - residual.var() / batch["returns"].var()).item()
+            log.update(global_step, optimizer.param_groups[0]["lr"].item(), losses)
 
             # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
             if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
-                raise Diverged(
-                    f"the loss or the weights are not finite after iteration {iteration}; try a smaller"
-                    f" --learning-rate (the last finite checkpoint, if any, is {checkpoint_path})"
-                )
+                raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
             if stop or iteration % args.save_every == 0 or iteration == num_iterations:
                 writer.flush()  # the curve on disk reaches at least the checkpoint's step
                 save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration)
             if stop:
-                raise Stopped(
-                    f"saved step {global_step:,} to {checkpoint_path}; continue with --resume {checkpoint_path}"
-                )
+                raise Stopped(f"saved step {global_step:,}: continue with --resume {checkpoint_path}")
     print(f"saved {checkpoint_path}")
     return agent, run_dir
 
@@ -418,179 +367,157 @@ def train(args):
 # EVALUATION
 def evaluate(args):
     """Run the deterministic policy (the Gaussian's mean) of --eval-checkpoint with its saved statistics."""
-    checkpoint = load_checkpoint(args.eval_checkpoint)
-    train_args = resumed_args(checkpoint, args)
+    checkpoint, train_args = load_checkpoint(args.eval_checkpoint, args)
     device = pick_device(args.device)
-    env = make_env(train_args.env_id, args.capture_video, f"{train_args.run_dir}/videos-eval", "eval", lambda _: True)
-    agent = Agent(env.observation_space.shape[0], env.action_space.shape[0], norm_obs=train_args.norm_obs).to(device)
-    agent.load_state_dict(checkpoint["agent"])
-    returns = []
-    for episode in range(args.eval_episodes):
-        raw_obs, _ = env.reset(seed=args.seed + episode)
-        done = False
-        episode_return = 0.0
-        while not done:  # the statistics stay frozen: evaluation does not change the normalization
-            with torch.no_grad():
-                action = agent.actor_mean(torch.as_tensor(agent.normalize_obs(raw_obs), device=device)).cpu().numpy()
-            raw_obs, reward, term, trunc, _ = env.step(np.clip(action, env.action_space.low, env.action_space.high))
-            episode_return += float(reward)
-            done = term or trunc
-        returns.append(episode_return)
-    env.close()
+    video_dir = f"{train_args.run_dir}/videos-eval"
+    with make_env(train_args.env_id, args.capture_video, video_dir, "eval", lambda _: True) as env:
+        agent = Agent(env.observation_space.shape[0], env.action_space.shape[0], norm_obs=train_args.norm_obs)
+        agent.to(device).load_state_dict(checkpoint["agent"])
+        returns = []
+        for episode in range(args.eval_episodes):
+            raw_obs, _ = env.reset(seed=args.seed + episode)
+            done = False
+            episode_return = 0.0
+            while not done:  # the statistics stay frozen: evaluation does not change the normalization
+                with torch.inference_mode():
+                    action = agent.actor_mean(torch.as_tensor(agent.normalize_obs(raw_obs), device=device))
+                action = np.clip(action.cpu().numpy(), env.action_space.low, env.action_space.high)
+                raw_obs, reward, term, trunc, _ = env.step(action)
+                episode_return += float(reward)
+                done = term or trunc
+            returns.append(episode_return)
     summary = f"return {np.mean(returns):.1f} ± {np.std(returns):.1f} over {len(returns)} episodes"
     print(f"eval {train_args.env_id} step {checkpoint['global_step']:,}: {summary}")
     return returns
 
 
-# MACHINERY: the process's settings, progress, checkpoints and argument checks.
-class Stopped(Exception):
-    """Ctrl-C or SIGTERM stopped the run at the end of an iteration, after its checkpoint was saved."""
+# MACHINERY. A run ends early Stopped (Ctrl-C or SIGTERM, after a checkpoint) or Diverged (last finite one kept).
+class Stopped(Exception): ...
 
 
-class Diverged(Exception):
-    """The loss or the weights stopped being finite; the last finite checkpoint stays on disk."""
-
-
-@contextlib.contextmanager
-def process_settings(args):
-    """Until the run ends, by a return or an error: Ctrl-C and SIGTERM only set a flag, which the loop checks; torch
-    uses --torch-threads threads; and with --compile, compiled code samples with torch's generator, as eager code."""
-    stop = []
-    previous_threads = torch.get_num_threads()
-    previous_handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        torch.set_num_threads(args.torch_threads)
-        for sig in previous_handlers:
-            signal.signal(sig, lambda signum, frame: stop.append(signum))
-        with torch._inductor.config.patch(fallback_random=True) if args.compile else contextlib.nullcontext():
-            yield stop
-    finally:
-        torch.set_num_threads(previous_threads)
-        for sig, handler in previous_handlers.items():
-            signal.signal(sig, handler)
+class Diverged(Exception): ...
 
 
 def pick_device(name):
     return torch.device("cpu" if name == "auto" else name)
 
 
-def progress(global_step, total_steps, sps, recent_returns):
-    mean = f"{np.mean(recent_returns):.1f}" if recent_returns else "n/a"
-    eta = (total_steps - global_step) / max(sps, 1) / 60
-    recent = f"return (last {len(recent_returns)}) {mean}"
-    return f"step {global_step:,}/{total_steps:,} | SPS {sps} | {recent} | ETA {eta:.1f} min"
+class Log:
+    """The run's TensorBoard scalars, and its progress on the console every 10 s and at the end."""
+
+    def __init__(self, writer, args, global_step, total_steps):
+        table = "\n".join(f"|{name}|{value}|" for name, value in asdict(args).items())
+        writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+        self.writer = writer
+        self.total_steps = total_steps
+        self.start_step = global_step
+        self.start_time = time.time()
+        self.printed = 0.0
+        self.returns = np.zeros(args.num_envs)  # of the episodes under way, and their lengths
+        self.lengths = np.zeros(args.num_envs, dtype=np.int64)
+        self.recent = deque(maxlen=100)  # the returns of the last 100 episodes
+
+    def episodes(self, reward, ended, step):
+        """Add each env's reward to its episode; log the return and length of those that `ended` with it."""
+        self.returns += reward
+        self.lengths += 1
+        for i in np.flatnonzero(ended):
+            self.recent.append(self.returns[i])
+            self.writer.add_scalar("charts/episodic_return", self.returns[i], step)
+            self.writer.add_scalar("charts/episodic_length", self.lengths[i], step)
+        self.returns[ended] = 0.0
+        self.lengths[ended] = 0
+
+    def update(self, step, learning_rate, losses):
+        sps = int((step - self.start_step) / (time.time() - self.start_time))
+        self.writer.add_scalar("charts/learning_rate", learning_rate, step)
+        self.writer.add_scalar("charts/SPS", sps, step)
+        for name, value in losses.items():
+            self.writer.add_scalar(f"losses/{name}", value, step)
+        if time.time() - self.printed > 10 or step == self.total_steps:
+            self.printed = time.time()
+            mean = np.mean(self.recent) if self.recent else np.nan  # the return of the last 100 episodes
+            eta = (self.total_steps - step) / max(sps, 1) / 60
+            print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean:.1f} | ETA {eta:.1f} min", flush=True)
 
 
 # A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
 RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
-FORMAT = ("ppo-checkpoint-v1", SCRIPT)  # what a checkpoint says it is: a checkpoint of this script
-# Flags that must be positive, and flags that must lie in [low, high]. Every float must be finite too.
-POSITIVE = "total_timesteps num_envs num_steps minibatch_size update_epochs save_every eval_episodes".split()
-POSITIVE += "torch_threads learning_rate clip_coef max_grad_norm".split()
-BOUNDS = {"gamma": (0, 1), "gae_lambda": (0, 1), "vf_coef": (0, math.inf), "ent_coef": (0, math.inf)}
+FORMAT = "ppo-checkpoint-v1"
 
 
-def resumed_args(checkpoint, args):
-    run_dir = os.path.dirname(os.path.abspath(args.resume or args.eval_checkpoint))
-    runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
-    return Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
-
-
-def restore(checkpoint, agent, optimizer, run_dir):
-    """The step and the iteration a run starts from: those after its checkpoint's, whose state it loads, if any."""
-    if checkpoint is None:
-        return 0, 1
-    agent.load_state_dict(checkpoint["agent"])
-    optimizer.load_state_dict(checkpoint["optimizer"])
-    torch.set_rng_state(checkpoint["torch_rng_state"])
-    print(f"resuming {run_dir} at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})")
-    return checkpoint["global_step"], checkpoint["iteration"] + 1
-
-
-def save_checkpoint(path, args, agent, optimizer, global_step, iteration):
+def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more):
     # Tensors, numbers and strings, loadable with torch.load(weights_only=True); written, then renamed, atomically.
-    checkpoint = {
-        "format": FORMAT[0],
-        "script": FORMAT[1],
-        "args": asdict(args),
-        "agent": agent.state_dict(),
-        "optimizer": optimizer.state_dict(),
-        "global_step": global_step,
-        "iteration": iteration,
-        "torch_rng_state": torch.get_rng_state(),
-    }
-    torch.save(checkpoint, f"{path}.tmp")
+    state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "torch_rng_state": torch.get_rng_state()}
+    numbers = {"global_step": global_step, "iteration": iteration, **more}
+    torch.save({"format": FORMAT, "script": SCRIPT, "args": asdict(args), **state, **numbers}, f"{path}.tmp")
     os.replace(f"{path}.tmp", path)
 
 
-def load_checkpoint(path):
-    """A checkpoint of this script, loaded on the CPU; a ValueError with a one-line reason if it is not one."""
+def load_checkpoint(path, args):
+    """A checkpoint of this script, on the CPU, and the Args of its run; else a ValueError with a one-line reason."""
     if not os.path.isfile(path):
         raise ValueError(f"checkpoint {path!r} does not exist")
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({type(e).__name__})") from None
-    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != FORMAT:
+    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, SCRIPT):
         raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
-    return checkpoint
+    runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
+    run_dir = os.path.dirname(os.path.abspath(path))
+    return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
+
+
+# Every number must be finite and positive, except these, which have ranges of their own.
+RANGES = {"seed": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
+RANGES |= {"ent_coef": (0, math.inf), "vf_coef": (0, math.inf)}
 
 
 def check_args(args):
     """Reject bad input before anything heavy loads, with a one-line reason (a ValueError)."""
+    import gymnasium as gym
+
     for name, value in asdict(args).items():
         flag = "--" + name.replace("_", "-")
-        if isinstance(value, float) and not math.isfinite(value):
+        low, high = RANGES.get(name, (0, math.inf))
+        if type(value) not in (int, float):  # strings, booleans and None have no range
+            continue
+        if not math.isfinite(value):
             raise ValueError(f"{flag} must be a finite number, got {value}")
-        if name in POSITIVE and value <= 0:
+        if name not in RANGES and value <= 0:
             raise ValueError(f"{flag} must be positive, got {value}")
-        if name in BOUNDS and not BOUNDS[name][0] <= value <= BOUNDS[name][1]:
-            raise ValueError(f"{flag} must be in [{BOUNDS[name][0]}, {BOUNDS[name][1]}], got {value}")
+        if not low <= value <= high:
+            raise ValueError(f"{flag} must be in [{low}, {high}], got {value}")
     batch = args.num_envs * args.num_steps
     if batch % args.minibatch_size:
         raise ValueError(f"--minibatch-size {args.minibatch_size} does not divide the batch of {batch} steps")
-    if args.resume is None and args.eval_checkpoint is None and args.total_timesteps < batch:
+    if not (args.resume or args.eval_checkpoint) and args.total_timesteps < batch:
         raise ValueError(f"--total-timesteps {args.total_timesteps} is less than one batch of {batch} steps")
     if args.device not in ("auto", "cpu") and not (args.device.startswith("cuda") and torch.cuda.is_available()):
         raise ValueError(f"--device {args.device} is not available here; use auto or cpu")
-    if args.resume is not None or args.eval_checkpoint is not None:
-        args = resumed_args(load_checkpoint(args.resume or args.eval_checkpoint), args)
-    check_env(args.env_id)
-    if args.eval_checkpoint is None:
-        check_run_dir(args)
-
-
-def check_env(env_id):
-    import gymnasium as gym
-
+    if args.resume or args.eval_checkpoint:
+        _, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
     try:
-        env = gym.make(env_id)
+        env = gym.make(args.env_id)
     except gym.error.Error as e:
-        hint = ". Use ppo_atari.py for Atari games" if re.search(r"ALE/|NoFrameskip|Deterministic", env_id) else ""
-        raise ValueError(f"unknown env id {env_id!r}: {e}{hint}") from None
+        hint = ". Use ppo_atari.py for Atari games" if re.search(r"ALE/|NoFrameskip|Deterministic", args.env_id) else ""
+        raise ValueError(f"unknown env id {args.env_id!r}: {e}{hint}") from None
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
-        raise ValueError(
-            f"{env_id} has a {env.action_space} action space and {env.observation_space} observations; "
-            f"{SCRIPT} needs a Box action space and flat observations. Use ppo_atari.py for Atari"
-        )
-
-
-def check_run_dir(args):
-    if args.run_dir is None:
+        raise ValueError(f"{SCRIPT} needs a Box action space and flat observations, not {env.action_space}")
+    run_dir = args.run_dir
+    if run_dir is None or args.eval_checkpoint:  # train() makes the default one; evaluation writes only videos
         return
-    if os.path.isfile(args.run_dir):
-        raise ValueError(f"--run-dir {args.run_dir} is a file, not a directory")
-    if args.resume is None and os.path.isdir(args.run_dir) and any("tfevents" in f for f in os.listdir(args.run_dir)):
-        raise ValueError(
-            f"--run-dir {args.run_dir} already holds a run: continue it with --resume {args.run_dir}/checkpoint.pt,"
-            " or pick a new directory"
-        )
+    if os.path.isfile(run_dir):
+        raise ValueError(f"--run-dir {run_dir} is a file, not a directory")
+    if not args.resume and os.path.isdir(run_dir) and any("tfevents" in f for f in os.listdir(run_dir)):
+        raise ValueError(f"--run-dir {run_dir} already holds a run: continue it with --resume {run_dir}/checkpoint.pt")
     try:
-        os.makedirs(args.run_dir, exist_ok=True)
-        tempfile.TemporaryFile(dir=args.run_dir).close()
+        os.makedirs(run_dir, exist_ok=True)
+        tempfile.TemporaryFile(dir=run_dir).close()
     except OSError as e:
-        raise ValueError(f"--run-dir {args.run_dir} cannot be created or written: {e.strerror}") from None
+        raise ValueError(f"--run-dir {run_dir} cannot be created or written: {e.strerror}") from None
 
 
 def main():
@@ -602,8 +529,15 @@ def main():
     except ValueError as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts
         sys.exit(2)
+    torch.set_num_threads(args.torch_threads)
+    if args.eval_checkpoint is not None:
+        return evaluate(args)
+    # A training run owns the process: Ctrl-C and SIGTERM only set the flag that train() reads after each iteration.
+    stop = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: stop.append(signum))
     try:
-        evaluate(args) if args.eval_checkpoint is not None else train(args)
+        train(args, stop)
     except Stopped as e:
         print(e)
         sys.exit(130)

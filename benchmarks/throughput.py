@@ -17,7 +17,8 @@ imports, model construction nor torch.compile's compilation count. The time to t
 first iteration is reported beside it: for `--compile`, less the eager script's, that is the
 compilation's cost.
 - ours: `train(args)` of the script, rollout + update + TensorBoard logging + checkpointing, eager
-  and with `--compile`; the iteration ends are the wall times of its `charts/SPS` events;
+  and with `--compile`, with the torch threads that the script's `main()` sets (`--torch-threads`); the
+  iteration ends are the wall times of its `charts/SPS` events;
 - the peers: `model.learn()` of Stable-Baselines3's PPO with the same hyperparameters, network and
   normalization (VecNormalize), once with torch's default threads and once with 1 thread; the
   iteration ends are its rollout ends;
@@ -71,6 +72,7 @@ def steady_rate(start, ends):
 
 
 def measure_ours(case, env_id, steps):
+    import torch
     import tyro
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -81,6 +83,7 @@ def measure_ours(case, env_id, steps):
             module.Args, args=[*flags, "--env-id", env_id, "--total-timesteps", str(steps), "--run-dir", tmp]
         )  # the defaults
         module.check_args(args)
+        torch.set_num_threads(args.torch_threads)  # as the script's main() sets the process up before train()
         start = time.time()
         module.train(args)
         acc = EventAccumulator(tmp)

@@ -247,8 +247,8 @@ def test_fire_on_life_loss(fire_on_life_loss, tmp_path, monkeypatch):
 def test_cnn_shapes_and_scaling():
     agent = atari.Agent(6)
     obs = torch.randint(0, 256, (3, 4, 84, 84), dtype=torch.uint8)
-    action, logprob, entropy, value = agent.get_action_and_value(obs)
-    assert action.shape == logprob.shape == entropy.shape == value.shape == (3,)
+    action, logprob, probs, value = agent.get_action_and_value(obs)
+    assert action.shape == logprob.shape == probs.entropy().shape == value.shape == (3,)
     # the frames are scaled to [0, 1] inside the network, and the log-prob is that of a softmax policy
     hidden = agent.network(obs.float() / 255.0)
     expected = torch.log_softmax(agent.actor(hidden), -1).gather(-1, action[:, None]).squeeze(-1)

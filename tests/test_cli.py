@@ -190,7 +190,7 @@ def test_checkpoint_holds_optimizer_and_statistics(script, tiny_run):
     needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     run_dir, _ = tiny_run(script)
     module = load_script(script)
-    checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"))
+    checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"), module.Args())[0]
     assert checkpoint["optimizer"]["state"], "the optimizer's moments are saved"
     if hasattr(module, "RunningMeanStd"):
         obs_rms = checkpoint["agent"]["obs_rms._extra_state"]
@@ -221,7 +221,7 @@ def test_eval_uses_the_saved_statistics(script, tmp_path, tiny_run):
     if not hasattr(module, "RunningMeanStd"):
         pytest.skip(f"{script} normalizes no observations")
     run_dir, _ = tiny_run(script)
-    checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"))
+    checkpoint = module.load_checkpoint(str(run_dir / "checkpoint.pt"), module.Args())[0]
     checkpoint["agent"]["obs_rms._extra_state"]["mean"] += 5.0
     torch.save(checkpoint, tmp_path / "shifted.pt")
     a = run_cli(script, "--eval-checkpoint", run_dir / "checkpoint.pt", "--eval-episodes", "2", cwd=tmp_path).stdout
@@ -287,7 +287,7 @@ def test_bad_input_is_one_clear_line_before_training(script, tmp_path, args, mes
     module = load_script(script)
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(sys, "argv", [script, *args])
-    monkeypatch.setattr(module, "train", lambda args: pytest.fail("training started"))
+    monkeypatch.setattr(module, "train", lambda *args, **kwargs: pytest.fail("training started"))
     monkeypatch.setattr(module, "evaluate", lambda args: pytest.fail("evaluation started"))
     with pytest.raises(SystemExit) as stopped:
         module.main()

@@ -132,15 +132,13 @@ def install(mp, rec):
             out = super().get_action_and_value(obs, action)
             if rec.phase != "train":
                 return out
+            action_out, logprob, probs, value = out
             if action is None:  # the rollout samples; the update evaluates the actions of the batch
                 rec.rollout.append(
-                    dict(
-                        obs=detach(obs),
-                        **dict(zip(("action", "logprob", "entropy", "value"), detach(out), strict=True)),
-                    )
+                    dict(obs=detach(obs), action=detach(action_out), logprob=detach(logprob), value=detach(value))
                 )
             else:
-                _, logprob, entropy, value = out
+                entropy = probs.entropy()
                 rec.minibatches.append(
                     dict(
                         obs=detach(obs),

@@ -101,7 +101,7 @@ def test_beta_is_logged_adapted_and_restored_on_resume(tmp_path):
     betas = [v for _, v in scalars["losses/beta"]]
     assert betas == [1.0, 2.0], "with a tiny target the KL is always too large: beta doubles"
     assert all(v > 0 for _, v in scalars["losses/kl"])
-    checkpoint = kl_script.load_checkpoint(str(run_dir / "checkpoint.pt"))
+    checkpoint = kl_script.load_checkpoint(str(run_dir / "checkpoint.pt"), kl_script.Args())[0]
     assert checkpoint["beta"] == 4.0
 
     # Roll the checkpoint back to after iteration 1 with a distinctive beta; the resumed iteration 2
@@ -110,7 +110,7 @@ def test_beta_is_logged_adapted_and_restored_on_resume(tmp_path):
     torch.save(checkpoint, run_dir / "checkpoint.pt")
     run_cli(script, "--resume", run_dir / "checkpoint.pt", cwd=tmp_path)
     assert tb_scalars(run_dir)["losses/beta"] == [(64, 1.0), (128, 7.0)]
-    assert kl_script.load_checkpoint(str(run_dir / "checkpoint.pt"))["beta"] == 14.0
+    assert kl_script.load_checkpoint(str(run_dir / "checkpoint.pt"), kl_script.Args())[0]["beta"] == 14.0
 
 
 def test_fixed_beta_stays_fixed(tmp_path):

@@ -1,9 +1,12 @@
-"""The scripts paste into any project: one idea per line, citations one grep finds, and train() leaves the process as
-it found it, whether it returns or raises."""
+"""The scripts paste into any project: one idea per line, citations one grep finds, main() owns the process and train()
+changes nothing global, and each script stays within its budget."""
 
 import ast
+import io
 import re
 import signal
+import sys
+import tokenize
 
 import pytest
 import torch
@@ -60,52 +63,150 @@ def failing_envs(*args, **kwargs):
 ENV_SCRIPTS = scripts_with("make_envs")
 
 
+def process_state():
+    return {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}, torch.get_num_threads()
+
+
 @pytest.mark.parametrize("script", ENV_SCRIPTS)
-def test_train_restores_the_process_when_it_raises(script, tmp_path, monkeypatch):
+def test_train_changes_nothing_global_when_it_raises(script, tmp_path, monkeypatch):
     module = load_script(script)
     monkeypatch.setattr(module, "make_envs", failing_envs)
-    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    threads = torch.get_num_threads()
-    args = module.Args(env_id=TINY[script]["env_id"], torch_threads=threads + 1, run_dir=str(tmp_path / "run"))
+    before = process_state()
+    args = module.Args(env_id=TINY[script]["env_id"], torch_threads=before[1] + 1, run_dir=str(tmp_path / "run"))
     with pytest.raises(RuntimeError, match="the envs failed to start"):
         module.train(args)
-    assert {sig: signal.getsignal(sig) for sig in handlers} == handlers
-    assert torch.get_num_threads() == threads
+    assert process_state() == before
 
 
-@pytest.mark.parametrize("script", ENV_SCRIPTS)
-def test_a_stop_is_an_exception_and_leaves_the_process_as_it_was(script, tmp_path, monkeypatch):
-    # SIGINT during a run: train() saves, then raises the script's Stopped, never SystemExit; main() maps it to 130.
-    module = load_script(script)
-    real_compute_gae = module.compute_gae
-
-    def interrupted(*args, **kwargs):
-        signal.raise_signal(signal.SIGINT)
-        return real_compute_gae(*args, **kwargs)
-
-    monkeypatch.setattr(module, "compute_gae", interrupted)
-    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    threads = torch.get_num_threads()
+def tiny_args(module, script, tmp_path):
     flags = dict(zip(TINY[script]["tiny"][::2], TINY[script]["tiny"][1::2], strict=True))
     fields = {name[2:].replace("-", "_"): value for name, value in flags.items()}
     defaults = module.Args()
     fields = {name: type(getattr(defaults, name))(value) for name, value in fields.items()}
-    args = module.Args(env_id=TINY[script]["env_id"], **fields, torch_threads=1, run_dir=str(tmp_path / "run"))
-    with pytest.raises(module.Stopped, match="--resume"):
-        module.train(args)
-    assert (tmp_path / "run" / "checkpoint.pt").exists()
-    assert {sig: signal.getsignal(sig) for sig in handlers} == handlers
-    assert torch.get_num_threads() == threads
+    return module.Args(env_id=TINY[script]["env_id"], **fields, torch_threads=1, run_dir=str(tmp_path / "run"))
 
 
-@pytest.mark.parametrize("script", scripts_with("process_settings"))
-def test_the_compile_setting_is_scoped_to_the_run(script):
+@pytest.mark.parametrize("script", ENV_SCRIPTS)
+def test_the_stop_flag_ends_the_run_with_a_checkpoint_and_an_exception(script, tmp_path, monkeypatch):
+    # main()'s signal handler sets the flag during an iteration: train() saves, then raises Stopped, never SystemExit.
     module = load_script(script)
-    import torch._inductor.config as inductor
+    real_compute_gae = module.compute_gae
+    stop = []
 
-    before = inductor.fallback_random
-    with module.process_settings(module.Args(compile=True)):
-        assert inductor.fallback_random is True  # compiled code samples with torch's generator, as eager code does
-    assert inductor.fallback_random == before
-    with module.process_settings(module.Args(compile=False)):
-        assert inductor.fallback_random == before
+    def interrupted(*args, **kwargs):
+        stop.append(signal.SIGINT)
+        return real_compute_gae(*args, **kwargs)
+
+    monkeypatch.setattr(module, "compute_gae", interrupted)
+    before = process_state()
+    with pytest.raises(module.Stopped, match="--resume"):
+        module.train(tiny_args(module, script, tmp_path), stop)
+    assert torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)["iteration"] == 1
+    assert process_state() == before
+
+
+@pytest.mark.parametrize("script", ENV_SCRIPTS)
+def test_main_owns_the_process_and_turns_ctrl_c_into_the_stop_flag(script, tmp_path, monkeypatch):
+    module = load_script(script)
+    seen = {}
+
+    def train(args, stop):  # Ctrl-C during a run of main()'s: it only sets the flag that train() reads
+        signal.raise_signal(signal.SIGINT)
+        seen["stop"] = list(stop)
+        seen["threads"] = torch.get_num_threads()
+        raise module.Stopped("saved")
+
+    monkeypatch.setattr(module, "train", train)
+    monkeypatch.setattr(module, "check_args", lambda args: None)
+    monkeypatch.setattr(sys, "argv", [script, "--torch-threads", "3"])
+    before = process_state()
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            module.main()
+    finally:
+        for sig, handler in before[0].items():
+            signal.signal(sig, handler)
+        torch.set_num_threads(before[1])
+    assert stopped.value.code == 130 and seen == {"stop": [signal.SIGINT], "threads": 3}
+
+
+def test_train_has_no_process_settings_to_undo():
+    # main() sets the process up once; no script carries machinery that changes it and must undo it.
+    for script in ENV_SCRIPTS:
+        source = (ROOT / script).read_text()
+        train = ast.get_source_segment(
+            source, next(n for n in ast.parse(source).body if getattr(n, "name", "") == "train")
+        )
+        assert "signal." not in train and "set_num_threads" not in train and "_inductor" not in train, script
+
+
+# The budgets of issue 42, after `ruff format`, comments included: lines, code characters (comments, docstrings and
+# blank lines left out, leading spaces stripped) and the lines of train(). ppo_rlhf.py has a line budget only.
+BUDGETS = {
+    "ppo_continuous.py": {"lines": 550, "code_chars": 16_500, "train": 120},
+    "ppo_atari.py": {"lines": 570, "code_chars": 17_500, "train": 120},
+    "ppo_kl_penalty.py": {"lines": 600, "code_chars": 17_800, "train": 135},
+    "ppo_rlhf.py": {"lines": 620},
+}
+
+
+def code_chars(source):
+    """Characters of code: every line stripped, without its comment, docstring lines and blank lines left out."""
+    docstrings = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Module | ast.FunctionDef | ast.ClassDef | ast.AsyncFunctionDef) and node.body:
+            first = node.body[0]
+            if (
+                isinstance(first, ast.Expr)
+                and isinstance(first.value, ast.Constant)
+                and isinstance(first.value.value, str)
+            ):
+                docstrings.update(range(first.lineno, first.end_lineno + 1))
+    tokens = tokenize.generate_tokens(io.StringIO(source).readline)
+    comments = {t.start[0]: t.start[1] for t in tokens if t.type == tokenize.COMMENT}
+    lines = source.splitlines()
+    kept = [line[: comments.get(i, len(line))].strip() for i, line in enumerate(lines, 1) if i not in docstrings]
+    return sum(len(line) for line in kept)
+
+
+def weight(source):
+    train = next((n for n in ast.parse(source).body if isinstance(n, ast.FunctionDef) and n.name == "train"), None)
+    return {
+        "lines": len(source.splitlines()),
+        "code_chars": code_chars(source),
+        "train": train.end_lineno - train.lineno + 1,
+    }
+
+
+def test_the_weight_can_fail():
+    source = '"""Doc."""\n\n\ndef train(args):  # a comment\n    """Doc\n    string."""\n    return args  # why\n'
+    assert weight(source) == {"lines": 7, "code_chars": len("def train(args):") + len("return args"), "train": 4}
+
+
+# Not met yet (see the closing note of issue 42 for the figures reached); strict, so that each fails once it is met
+# and its marker must go. The ceilings below keep the scripts from growing past what they reached in the meantime.
+NOT_MET = {("ppo_continuous.py", "code_chars"), ("ppo_atari.py", "code_chars"), ("ppo_kl_penalty.py", "code_chars")}
+REACHED = {"ppo_continuous.py": 17_400, "ppo_atari.py": 18_400, "ppo_kl_penalty.py": 18_650}
+CASES = [
+    pytest.param(
+        script,
+        measure,
+        marks=[pytest.mark.xfail(strict=True, reason="not met yet")] if (script, measure) in NOT_MET else [],
+        id=f"{script}-{measure}",
+    )
+    for script in sorted(BUDGETS)
+    for measure in BUDGETS[script]
+]
+
+
+@pytest.mark.parametrize("script,measure", CASES)
+def test_scripts_stay_within_their_budgets(script, measure):
+    if not (ROOT / script).exists():
+        pytest.skip(f"no {script}")
+    reached = weight((ROOT / script).read_text())[measure]
+    assert reached <= BUDGETS[script][measure], f"{script}: {measure} {reached}, budget {BUDGETS[script][measure]}"
+
+
+@pytest.mark.parametrize("script", sorted(REACHED))
+def test_code_does_not_grow_past_what_it_reached(script):
+    assert weight((ROOT / script).read_text())["code_chars"] <= REACHED[script]
