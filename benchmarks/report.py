@@ -959,8 +959,9 @@ def tenths(run, name):
     column = run[:, 1 + RLHF_STATS.index(name)]
     width = max(1, len(column) // 10)
     first = len(column) % width
-    # nanmean: an iteration with no pair of different gold has no RM accuracy
-    return [np.nanmean(column[i : i + width]) for i in range(first, len(column), width)]
+    with warnings.catch_warnings():  # an iteration with no pair of different gold has no RM accuracy: nan
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return [np.nanmean(column[i : i + width]) for i in range(first, len(column), width)]
 
 
 def where_run(runs):
