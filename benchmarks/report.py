@@ -1127,8 +1127,11 @@ def figure3_block(folder, results, full):
     seeds = ", ".join(map(str, sorted({r.seed for r in peers})))
     count = f"{len(peers)} peer run{'s' if len(peers) != 1 else ''}"
     heading = f"`{folder.name}`: PPO against A2C and TRPO, the paper's Figure 3 ({count}, seeds {seeds})"
-    lines = ["", f"{'### ' if full else '**'}{heading}{'' if full else '**'} ([report]({rel}/report.md))", ""]
-    lines += [figure3_verdict(runs), "", f'<img src="{rel}/curves/figure3.png" width="{100 if full else 80}%">']
+    if full:
+        lines = ["", f"### {heading}", "", f"[report]({rel}/report.md). {figure3_verdict(runs)}"]
+    else:
+        lines = ["", f"**{heading}** ([report]({rel}/report.md)): {figure3_verdict(runs)}"]
+    lines += ["", f'<img src="{rel}/curves/figure3.png" width="{100 if full else 80}%">']
     return lines + (["", *figure3_tables(runs, level="####"), "", FIGURE3_MISSING] if full else [])
 
 

@@ -185,8 +185,14 @@ def test_the_weight_can_fail():
 
 # Not met yet (see the closing note of issue 42 for the figures reached); strict, so that each fails once it is met
 # and its marker must go. The ceilings below keep the scripts from growing past what they reached in the meantime.
-NOT_MET = {("ppo_continuous.py", "code_chars"), ("ppo_atari.py", "code_chars"), ("ppo_kl_penalty.py", "code_chars")}
-REACHED = {"ppo_continuous.py": 17_400, "ppo_atari.py": 18_400, "ppo_kl_penalty.py": 18_650}
+# ppo_rlhf.py's lines hold issue 40's GRPO arm, the reward model's accuracy and the new gold rule.
+REACHED = {
+    ("ppo_continuous.py", "code_chars"): 17_400,
+    ("ppo_atari.py", "code_chars"): 18_400,
+    ("ppo_kl_penalty.py", "code_chars"): 18_650,
+    ("ppo_rlhf.py", "lines"): 641,
+}
+NOT_MET = set(REACHED)
 CASES = [
     pytest.param(
         script,
@@ -207,6 +213,6 @@ def test_scripts_stay_within_their_budgets(script, measure):
     assert reached <= BUDGETS[script][measure], f"{script}: {measure} {reached}, budget {BUDGETS[script][measure]}"
 
 
-@pytest.mark.parametrize("script", sorted(REACHED))
-def test_code_does_not_grow_past_what_it_reached(script):
-    assert weight((ROOT / script).read_text())["code_chars"] <= REACHED[script]
+@pytest.mark.parametrize("script,measure", sorted(REACHED))
+def test_no_script_grows_past_what_it_reached(script, measure):
+    assert weight((ROOT / script).read_text())[measure] <= REACHED[script, measure]

@@ -23,7 +23,8 @@ def mentioned_details(line):
 
 
 def test_readme_is_short():
-    assert len(README.splitlines()) <= 245  # about 240, with the RLHF section (issue 29)
+    # About 250: the RLHF section (issues 29, 40: its GRPO arm and what the suite shows) and Figure 3 (issue 41).
+    assert len(README.splitlines()) <= 255
 
 
 def test_every_detail_links_to_a_line_that_cites_it():
