@@ -125,10 +125,12 @@ def clipped_surrogate_loss(ratio, advantages, clip_coef, mask=None):
     return -masked_mean(torch.min(surr1, surr2), mask)
 
 
-def value_loss(newvalue, oldvalue, returns, clip_coef, mask=None):
-    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 over the masked tokens, clipped (core detail 9, not the
-    paper's): the larger of the errors of V and of the old value moved at most clip_coef to V."""
+def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True, mask=None):
+    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 over the masked tokens, optionally clipped (core
+    detail 9, not the paper's): the larger of the errors of V and of the old value moved at most clip_coef to V."""
     v_loss_unclipped = (newvalue - returns) ** 2
+    if not clip_vloss:
+        return masked_mean(v_loss_unclipped, mask)
     v_clipped = oldvalue + torch.clamp(newvalue - oldvalue, -clip_coef, clip_coef)
     return masked_mean(torch.max(v_loss_unclipped, (v_clipped - returns) ** 2), mask)
 
@@ -411,7 +413,7 @@ def ppo_update(agent, optimizer, mb, args):
     logratio = (dist.log_prob(mb["responses"]) - mb["logprobs"]) * mask
     ratio = logratio.exp()  # r_t(theta), paper eq. (6)
     pg_loss = clipped_surrogate_loss(ratio, mb["advantages"], args.clip_coef, mask)
-    v_loss = value_loss(newvalues[:, PROMPT_LENGTH - 1 : -1], mb["values"], mb["returns"], args.clip_coef, mask)
+    v_loss = value_loss(newvalues[:, PROMPT_LENGTH - 1 : -1], mb["values"], mb["returns"], args.clip_coef, True, mask)
     # GRPO has no critic to fit: its loss is L^CLIP alone.
     loss = pg_loss + args.vf_coef * v_loss if args.advantage == "gae" else pg_loss
     optimizer.zero_grad()

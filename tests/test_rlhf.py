@@ -171,7 +171,7 @@ def test_losses_are_means_over_the_masked_tokens_only():
     ratio, adv, mask = torch.tensor([1.5, 0.5, 9.0]), torch.tensor([1.0, 1.0, 5.0]), torch.tensor([1.0, 1.0, 0.0])
     assert rlhf.clipped_surrogate_loss(ratio, adv, 0.2, mask).item() == pytest.approx(-(1.2 + 0.5) / 2)
     new, old, ret = torch.tensor([1.0, 3.0, 50.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])
-    assert rlhf.value_loss(new, old, ret, 10.0, mask).item() == pytest.approx((1.0 + 4.0) / 2)
+    assert rlhf.value_loss(new, old, ret, 10.0, True, mask).item() == pytest.approx((1.0 + 4.0) / 2)
 
 
 # THE LANGUAGE

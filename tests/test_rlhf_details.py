@@ -99,7 +99,7 @@ def test_every_loss_reads_only_the_masked_tokens(recorded):
     for name in ("clipped_surrogate_loss", "value_loss"):
         assert calls[name], name
         for call in calls[name]:
-            mask = call["args"][-1] if len(call["args"]) in (4, 5) else call["kwargs"].get("mask")
+            mask = call["args"][-1] if len(call["args"]) in (4, 6) else call["kwargs"].get("mask")
             assert mask is not None and torch.is_tensor(mask), f"{name} was called without the mask"
             assert (mask == 0).any() and (mask == 1).any()
     for call in calls["clipped_surrogate_loss"]:
