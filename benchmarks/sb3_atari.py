@@ -20,12 +20,13 @@ from __future__ import annotations
 
 import math
 import os
-import signal
-import sys
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
+
+from common import sb3_main
 
 FRAME_SKIP = 4
-RUNTIME_FIELDS = ("torch_threads", "save_every", "resume")
+N_ENVS, N_STEPS = 8, 128
+ROLLOUT = N_ENVS * N_STEPS  # agent steps per rollout
 
 
 @dataclass
@@ -60,14 +61,14 @@ def make_model(args, run_dir):
     from stable_baselines3.common.vec_env import VecFrameStack
 
     gym.register_envs(ale_py)
-    envs = VecFrameStack(make_atari_env(args.env_id, n_envs=8, seed=args.seed), n_stack=4)
+    envs = VecFrameStack(make_atari_env(args.env_id, n_envs=N_ENVS, seed=args.seed), n_stack=4)
     model_path = os.path.join(run_dir, "sb3_model.zip")
     if os.path.exists(model_path):  # a resumed run: the weights, the optimizer and the step count
         return PPO.load(model_path, env=envs, device="cpu"), model_path
     model = PPO(
         "CnnPolicy",
         envs,
-        n_steps=128,
+        n_steps=N_STEPS,
         n_epochs=4,
         batch_size=256,
         learning_rate=lambda progress_remaining: 2.5e-4 * progress_remaining,
@@ -82,74 +83,15 @@ def make_model(args, run_dir):
 
 
 def main():
-    import tyro
-
-    args = tyro.cli(Args)
-    try:
-        check_args(args)
-    except ValueError as e:
-        print(f"sb3_atari.py: error: {e}", file=sys.stderr)
-        sys.exit(2)
-    import torch
-    from stable_baselines3.common.callbacks import BaseCallback
-    from torch.utils.tensorboard import SummaryWriter
-
-    if args.resume is not None:
-        saved = torch.load(args.resume, map_location="cpu", weights_only=True)
-        args = Args(
-            **{
-                **saved["args"],
-                **{k: getattr(args, k) for k in RUNTIME_FIELDS},
-                "run_dir": os.path.dirname(os.path.abspath(args.resume)),
-            }
-        )
-    run_dir = args.run_dir or f"runs/sb3_atari__{args.env_id}__{args.seed}"
-    os.makedirs(run_dir, exist_ok=True)
-    torch.set_num_threads(args.torch_threads)
-    model, model_path = make_model(args, run_dir)
-    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
-    writer = SummaryWriter(run_dir, purge_step=model.num_timesteps + 1 if args.resume else None)
-    stop = []
-    previous = {
-        sig: signal.signal(sig, lambda signum, frame: stop.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)
-    }
-
-    def save():
-        model.save(model_path)
-        writer.flush()
-        torch.save(
-            {"format": "sb3-checkpoint-v1", "args": asdict(args), "global_step": model.num_timesteps},
-            f"{checkpoint_path}.tmp",
-        )
-        os.replace(f"{checkpoint_path}.tmp", checkpoint_path)
-
-    class Log(BaseCallback):
-        rollouts = 0
-
-        def _on_step(self):
-            for info in self.locals["infos"]:
-                if "episode" in info:  # a whole game ended (Monitor is below the episodic-life wrapper)
-                    writer.add_scalar("charts/episodic_return", info["episode"]["r"], self.num_timesteps)
-                    writer.add_scalar(
-                        "charts/episodic_length", math.ceil(info["episode"]["l"] / FRAME_SKIP), self.num_timesteps
-                    )
-            return not stop
-
-        def _on_rollout_end(self):
-            Log.rollouts += 1
-            if Log.rollouts % args.save_every == 0:
-                save()
-            print(f"step {self.num_timesteps:,}/{args.total_timesteps:,}", flush=True)
-
-    model.learn(args.total_timesteps - model.num_timesteps, callback=Log(), reset_num_timesteps=False)
-    save()
-    writer.close()
-    for sig, handler in previous.items():
-        signal.signal(sig, handler)
-    if stop:
-        print(f"stopped: saved step {model.num_timesteps:,}; continue with --resume {checkpoint_path}")
-        sys.exit(130)
-    print(f"saved {checkpoint_path}")
+    sb3_main(
+        "sb3_atari.py",
+        Args,
+        check_args,
+        make_model,
+        lambda args: f"runs/sb3_atari__{args.env_id}__{args.seed}",
+        lambda args: args.save_every * ROLLOUT,
+        lambda n: math.ceil(n / FRAME_SKIP),
+    )
 
 
 if __name__ == "__main__":

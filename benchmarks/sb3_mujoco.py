@@ -20,12 +20,11 @@ statistics. Ctrl-C or SIGTERM saves them all and exits 130; --resume continues t
 from __future__ import annotations
 
 import os
-import signal
-import sys
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
+
+from common import sb3_main
 
 ALGOS = ("a2c", "trpo")
-RUNTIME_FIELDS = ("torch_threads", "save_every", "resume")
 
 
 @dataclass
@@ -79,7 +78,8 @@ def make_model(args, run_dir):
     from stable_baselines3.common.vec_env import VecNormalize
     from torch import nn  # noqa: F401  (the Zoo's policy_kwargs strings name nn)
 
-    params, _ = hyperparameters(args.algo, args.env_id)
+    params, source = hyperparameters(args.algo, args.env_id)
+    print(f"{args.algo} on {args.env_id}: {source}", flush=True)
     params.pop("n_timesteps", None)
     policy = params.pop("policy")
     envs = make_vec_env(args.env_id, n_envs=params.pop("n_envs", 1), seed=args.seed)
@@ -104,78 +104,14 @@ def make_model(args, run_dir):
 
 
 def main():
-    import tyro
-
-    args = tyro.cli(Args)
-    try:
-        check_args(args)
-    except ValueError as e:
-        print(f"sb3_mujoco.py: error: {e}", file=sys.stderr)
-        sys.exit(2)
-    import torch
-    from stable_baselines3.common.callbacks import BaseCallback
-    from torch.utils.tensorboard import SummaryWriter
-
-    if args.resume is not None:
-        saved = torch.load(args.resume, map_location="cpu", weights_only=True)
-        args = Args(
-            **{
-                **saved["args"],
-                **{k: getattr(args, k) for k in RUNTIME_FIELDS},
-                "run_dir": os.path.dirname(os.path.abspath(args.resume)),
-            }
-        )
-    run_dir = args.run_dir or f"runs/sb3_{args.algo}__{args.env_id}__{args.seed}"
-    os.makedirs(run_dir, exist_ok=True)
-    torch.set_num_threads(args.torch_threads)
-    model, model_path = make_model(args, run_dir)
-    print(f"{args.algo} on {args.env_id}: {hyperparameters(args.algo, args.env_id)[1]}", flush=True)
-    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
-    writer = SummaryWriter(run_dir, purge_step=model.num_timesteps + 1 if args.resume else None)
-    stop = []
-    previous = {
-        sig: signal.signal(sig, lambda signum, frame: stop.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)
-    }
-
-    def save():
-        model.save(model_path)
-        if model.get_vec_normalize_env() is not None:
-            model.get_vec_normalize_env().save(os.path.join(run_dir, "vecnormalize.pkl"))
-        writer.flush()
-        torch.save(
-            {"format": "sb3-checkpoint-v1", "args": asdict(args), "global_step": model.num_timesteps},
-            f"{checkpoint_path}.tmp",
-        )
-        os.replace(f"{checkpoint_path}.tmp", checkpoint_path)
-
-    class Log(BaseCallback):
-        saved_at = model.num_timesteps
-        printed_at = model.num_timesteps
-
-        def _on_step(self):
-            for info in self.locals["infos"]:
-                if "episode" in info:  # an episode ended: Monitor's undiscounted return, before VecNormalize
-                    writer.add_scalar("charts/episodic_return", info["episode"]["r"], self.num_timesteps)
-                    writer.add_scalar("charts/episodic_length", info["episode"]["l"], self.num_timesteps)
-            return not stop
-
-        def _on_rollout_end(self):
-            if self.num_timesteps - Log.saved_at >= args.save_every:
-                Log.saved_at = self.num_timesteps
-                save()
-            if self.num_timesteps - Log.printed_at >= 10_000 or self.num_timesteps >= args.total_timesteps:
-                Log.printed_at = self.num_timesteps
-                print(f"step {self.num_timesteps:,}/{args.total_timesteps:,}", flush=True)
-
-    model.learn(args.total_timesteps - model.num_timesteps, callback=Log(), reset_num_timesteps=False)
-    save()
-    writer.close()
-    for sig, handler in previous.items():
-        signal.signal(sig, handler)
-    if stop:
-        print(f"stopped: saved step {model.num_timesteps:,}; continue with --resume {checkpoint_path}")
-        sys.exit(130)
-    print(f"saved {checkpoint_path}")
+    sb3_main(
+        "sb3_mujoco.py",
+        Args,
+        check_args,
+        make_model,
+        lambda args: f"runs/sb3_{args.algo}__{args.env_id}__{args.seed}",
+        lambda args: args.save_every,
+    )
 
 
 if __name__ == "__main__":
