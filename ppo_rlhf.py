@@ -318,7 +318,7 @@ def fit(model, loss_fn, steps, learning_rate, stage, stop):
 def train_sft(args, run_dir, device, stop):
     """Stage 1: pi_SFT, a transformer fitted to reviews from the grammar by next-token prediction."""
     if args.sft_checkpoint:
-        return new_model(args, device, load_checkpoint(args.sft_checkpoint, "sft")["model"])
+        return new_model(args, device, load_checkpoint(args.sft_checkpoint, args, "sft")[0]["model"])
     torch.manual_seed(args.seed)
     rng = random.Random(args.seed)
     sft = new_model(args, device)
@@ -338,7 +338,7 @@ def train_reward_model(args, sft, run_dir, device, stop):
     """Stage 2: a reward model, pi_SFT with its scalar head read at the EOS, fitted to pairs of pi_SFT's responses
     ranked by the gold reward. It only ever sees pi_SFT's text: what it says of any other text is a guess."""
     if args.reward_model_checkpoint:
-        return new_model(args, device, load_checkpoint(args.reward_model_checkpoint, "reward_model")["model"])
+        return new_model(args, device, load_checkpoint(args.reward_model_checkpoint, args, "reward_model")[0]["model"])
     torch.manual_seed(args.seed + 1)
     n = 2 * args.rm_pairs  # sampled 512 at a time: larger batches run slower on a CPU
     samples = [generate(sft, min(512, n - i), args.response_length, args.temperature) for i in range(0, n, 512)]
@@ -517,10 +517,7 @@ def train(args, stop=()):
     run_dir) or raises Stopped, Diverged."""
     from torch.utils.tensorboard import SummaryWriter
 
-    checkpoint = load_checkpoint(args.resume) if args.resume else None
-    if checkpoint:
-        runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
-        args = Args(**{**checkpoint["args"], **runtime, "run_dir": os.path.dirname(os.path.abspath(args.resume))})
+    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
     run_dir = args.run_dir or f"runs/reviews__{args.exp_name}__{args.seed}__{int(time.time())}"
     device = torch.device("cpu" if args.device == "auto" else args.device)
     if checkpoint:  # a resumed stage 3: stages 1 and 2 are in its checkpoint
@@ -553,8 +550,8 @@ def save_checkpoint(path, stage, args, **state):
     os.replace(f"{path}.tmp", path)
 
 
-def load_checkpoint(path, stage="ppo"):
-    """A checkpoint of this script's `stage`, loaded on the CPU; else a ValueError with a one-line reason."""
+def load_checkpoint(path, args, stage="ppo"):
+    """A checkpoint of this script's `stage` on the CPU, and the Args of its run; else a one-line ValueError."""
     if not os.path.isfile(path):
         raise ValueError(f"checkpoint {path!r} does not exist")
     try:
@@ -565,7 +562,8 @@ def load_checkpoint(path, stage="ppo"):
         raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
     if checkpoint.get("stage") != stage:
         raise ValueError(f"{path!r} is a checkpoint of the {checkpoint.get('stage')} stage, not of the {stage} stage")
-    return checkpoint
+    runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
+    return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": os.path.dirname(os.path.abspath(path))})
 
 
 # Every number must be finite and positive, except these, which have ranges of their own.
@@ -608,11 +606,11 @@ def check_args(args):
         path = os.path.join(args.run_dir, "checkpoint.pt")
         raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {path}")
     for name, stage in (("sft_checkpoint", "sft"), ("reward_model_checkpoint", "reward_model")):
-        trained = load_checkpoint(getattr(args, name), stage)["args"] if getattr(args, name) else asdict(args)
-        if any(trained[field] != getattr(args, field) for field in ("d_model", "n_layer", "n_head")):
+        trained = load_checkpoint(getattr(args, name), args, stage)[1] if getattr(args, name) else args
+        if any(getattr(trained, field) != getattr(args, field) for field in ("d_model", "n_layer", "n_head")):
             raise ValueError(f"{flag(name)} holds a network of another --d-model, --n-layer or --n-head")
     if args.resume is not None:
-        load_checkpoint(args.resume)
+        load_checkpoint(args.resume, args)
 
 
 def main():

@@ -67,6 +67,7 @@ def first_update(**overrides):
         with tempfile.TemporaryDirectory() as run_dir:
             args = module.Args(**{"env_id": "Hopper-v5", "seed": 1, **overrides, "run_dir": run_dir})
             args.total_timesteps = args.num_envs * args.num_steps  # one iteration: one rollout, one update
+            torch.set_num_threads(args.torch_threads)  # as the script's main() sets the process up before train()
             after, _ = module.train(args)
     finally:
         module.Agent, module.compute_gae = real_agent, real_gae

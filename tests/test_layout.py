@@ -190,7 +190,7 @@ REACHED = {
     ("ppo_continuous.py", "code_chars"): 17_400,
     ("ppo_atari.py", "code_chars"): 18_400,
     ("ppo_kl_penalty.py", "code_chars"): 18_650,
-    ("ppo_rlhf.py", "lines"): 643,
+    ("ppo_rlhf.py", "lines"): 641,
 }
 NOT_MET = set(REACHED)
 CASES = [
