@@ -616,6 +616,9 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                     proc.terminate()
             while todo and len(running) < workers and not signals:
                 job = todo.pop(0)
+                if job.csv.exists():  # finished meanwhile by another runner
+                    print(f"skip   {job.name}: another runner finished it", flush=True)
+                    continue
                 other = running_elsewhere(job)
                 if other:
                     print(f"skip   {job.name}: another process (pid {other}) is running it", flush=True)

@@ -9,6 +9,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -260,6 +261,34 @@ def test_runner_resumes_an_interrupted_run(tmp_path):
     assert steps == sorted(steps), "one curve, without a fold at the resume"
     attempts = [line.split("\t") for line in (run_dir / "attempts.txt").read_text().splitlines()]
     assert [a[4] for a in attempts] == ["start", "resume"] and [a[3] for a in attempts] == ["130", "0"]
+
+
+def test_a_run_another_runner_finished_meanwhile_is_skipped(tmp_path):
+    """Two runners may share a grid (one per core, say): a run whose CSV appeared after this runner listed it is not
+    resumed and written again."""
+    total = 2048
+    folder = run.results_folder("mujoco", total)
+    first_dir = tmp_path / "runs" / folder / "InvertedPendulum-v5__clip0.2__seed1"
+    second_csv = tmp_path / "results" / folder / "InvertedPendulum-v5__clip0.2__seed2.csv"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "mujoco", "--envs", "InvertedPendulum"]
+    cmd += ["--seeds", "1", "2", "--workers", "1", "--total-timesteps", str(total)]
+    cmd += ["--results-dir", str(tmp_path / "results"), "--runs-dir", str(tmp_path / "runs")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for _ in range(600):  # the first run has started: the runner has listed both
+            if (first_dir / "pid").exists() or proc.poll() is not None:
+                break
+            time.sleep(0.1)
+        assert proc.poll() is None, "the first run ended before the test could finish the second"
+        write_csv(second_csv, [("note", "finished by another runner")], [(1, 1.0, 1)])
+        out, err = proc.communicate(timeout=300)
+    finally:
+        with contextlib.suppress(OSError):
+            proc.kill()
+    assert proc.returncode == 0, out + err
+    assert "skip   InvertedPendulum-v5__clip0.2__seed2: another runner finished it" in out
+    assert read_csv(second_csv)[0] == {"note": "finished by another runner"}, "not written again"
+    assert not (tmp_path / "runs" / folder / "InvertedPendulum-v5__clip0.2__seed2").exists()
 
 
 def test_a_runner_killed_outright_loses_no_attempt(tmp_path):
