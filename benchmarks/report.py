@@ -651,9 +651,10 @@ def figure3_runs(folder, results=RESULTS):
     return [r for r in ppo if r.env_id in tasks] + load_runs(folder)
 
 
-def figure3_verdict(runs):
+def figure3_verdict(runs, names=True):
     """Per peer, the tasks on which PPO is ahead by more than 2 standard errors over the last 100 episodes, behind
-    by more than 2, within 2, or not yet comparable (fewer than 2 seeds a side): a line of words."""
+    by more than 2, within 2, or not yet comparable (fewer than 2 seeds a side): a line of words, which names the
+    tasks unless `names` is false (the README's short line)."""
     by_env, parts = group(runs), []
     for peer in [v for v in FIGURE3_NAMES if v != "ppo" and any(r.variant == v for r in runs)]:
         counts = {"ahead": [], "behind": [], "within 2 standard errors": [], "not comparable yet": []}
@@ -665,8 +666,10 @@ def figure3_verdict(runs):
             if diff is not None and abs(diff[0]) > 2 * diff[1]:
                 key = "ahead" if diff[0] > 0 else "behind"
             counts[key].append(env_base(env))
-        words = [f"{key} on {len(envs)} ({', '.join(envs)})" for key, envs in counts.items() if envs]
-        parts.append(f"against {FIGURE3_NAMES[peer]}, PPO is " + "; ".join(words))
+        words = [f"{key} on {len(envs)}" + f" ({', '.join(envs)})" * names for key, envs in counts.items() if envs]
+        parts.append(f"against {FIGURE3_NAMES[peer]}, PPO is " + ("; " if names else ", ").join(words))
+    if not names:
+        return f"over the last 100 episodes of {len(by_env)} tasks, " + "; ".join(parts) + "."
     return (
         f"**Over the last 100 episodes, of {len(by_env)} tasks:** " + ". And ".join(parts) + "."
         " Ahead or behind means by more than 2 standard errors of the difference, sqrt(s1²/n1 + s2²/n2); a task is"
@@ -1127,7 +1130,7 @@ def figure3_block(folder, results, full):
     if full:
         lines = ["", f"### {heading}", "", f"[report]({rel}/report.md). {figure3_verdict(runs)}"]
     else:
-        lines = ["", f"**{heading}** ([report]({rel}/report.md)): {figure3_verdict(runs)}"]
+        lines = ["", f"**{heading}** ([report]({rel}/report.md)): {figure3_verdict(runs, names=False)}"]
     lines += ["", f'<img src="{rel}/curves/figure3.png" width="{100 if full else 80}%">']
     return lines + (["", *figure3_tables(runs, level="####"), "", FIGURE3_MISSING] if full else [])
 

@@ -888,6 +888,11 @@ def test_figure3_counts_tasks_where_ppo_leads_trails_or_ties_each_peer(tmp_path)
     assert "against TRPO (sb3-contrib), PPO is not comparable yet on 3 (Hopper, Reacher, Swimmer)" in line
     assert "| Hopper-v5 | A2C (SB3) | 500.0 ± 10.0 (3) |" in text
     assert (results / "figure3" / "curves" / "figure3.png").exists()
+    short = report.figure3_verdict(report.figure3_runs(results / "figure3", results), names=False)  # the README's
+    assert short == (
+        "over the last 100 episodes of 3 tasks, against A2C (SB3), PPO is ahead on 1, behind on 1, within 2 standard"
+        " errors on 1; against TRPO (sb3-contrib), PPO is not comparable yet on 3."
+    )
 
 
 def test_sb3_mujoco_reads_the_rl_zoos_entry_for_the_task():
