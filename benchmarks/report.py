@@ -666,7 +666,8 @@ def figure3_verdict(runs, names=True):
             if diff is not None and abs(diff[0]) > 2 * diff[1]:
                 key = "ahead" if diff[0] > 0 else "behind"
             counts[key].append(env_base(env))
-        words = [f"{key} on {len(envs)}" + f" ({', '.join(envs)})" * names for key, envs in counts.items() if envs]
+        named = {key: f" ({', '.join(envs)})" if names else "" for key, envs in counts.items()}
+        words = [f"{key} on {len(envs)}{named[key]}" for key, envs in counts.items() if envs]
         parts.append(f"against {FIGURE3_NAMES[peer]}, PPO is " + ("; " if names else ", ").join(words))
     if not names:
         return f"over the last 100 episodes of {len(by_env)} tasks, " + "; ".join(parts) + "."
