@@ -317,9 +317,8 @@ def train(args, stop=()):
                     next_obs = torch.as_tensor(agent.normalize_obs(next_obs_raw, update=True), device=device)
                     terminations[step] = torch.as_tensor(term)
                     truncations[step] = torch.as_tensor(trunc)
-                    rewards[step] = torch.as_tensor(reward)
-                    if args.norm_reward:  # continuous details 8-9
-                        rewards[step] = torch.as_tensor(agent.normalize_reward(reward, term | trunc, args.gamma))
+                    scaled = agent.normalize_reward(reward, term | trunc, args.gamma) if args.norm_reward else reward
+                    rewards[step] = torch.as_tensor(scaled)  # continuous details 8-9: the reward learned from
                     for i in np.flatnonzero(trunc):  # the true final observation of an episode cut by the time limit
                         final_obs = torch.as_tensor(agent.normalize_obs(infos["final_obs"][i]), device=device)
                         final_values[step, i] = agent.get_value(final_obs)
