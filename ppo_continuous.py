@@ -153,6 +153,7 @@ def make_env(env_id, capture_video=False, video_dir=None, name_prefix="rl-video"
     env = gym.make(env_id, render_mode="rgb_array")
     # Film with the model's tracking camera where it has one: a fixed camera loses a walker.
     if "track" in [env.unwrapped.model.camera(i).name for i in range(env.unwrapped.model.ncam)]:
+        env.close()
         env = gym.make(env_id, render_mode="rgb_array", camera_name="track")
     return gym.wrappers.RecordVideo(env, video_dir, episode_trigger, name_prefix=name_prefix)
 

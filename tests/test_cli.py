@@ -18,6 +18,7 @@ from conftest import (
     load_script,
     needs_env,
     run_cli,
+    scripts_with,
     signal_at_checkpoint,
     tb_scalars,
     train_tiny,
@@ -422,3 +423,24 @@ def test_video_follows_the_walker(tmp_path):
     )
     assert last_frame_body_pixels(tracked, tmp_path / "tracked") > 2000
     assert last_frame_body_pixels(fixed, tmp_path / "fixed") < 30, "the check tells a visible robot from empty floor"
+
+
+@pytest.mark.parametrize("name", scripts_with("make_env"))
+def test_filming_with_the_tracking_camera_leaves_no_other_env_open(name, tmp_path, monkeypatch):
+    # To find Hopper's tracking camera, make_env makes an env, reads its cameras, then makes the one it films.
+    import gymnasium as gym
+
+    made, closed = [], []
+    real_make = gym.make
+
+    def make(*args, **kwargs):
+        env = real_make(*args, **kwargs)
+        real_close = env.close
+        env.close = lambda: (closed.append(env), real_close())
+        made.append(env)
+        return env
+
+    monkeypatch.setattr(gym, "make", make)
+    filmed = load_script(name).make_env("Hopper-v5", capture_video=True, video_dir=str(tmp_path))
+    assert len(made) == 2 and closed == [made[0]], "the first env is closed, the filmed one is not"
+    filmed.close()
