@@ -37,9 +37,7 @@ class Args:
     compile: bool = False  # torch.compile the minibatch update (slower to start, faster to run)
     torch_threads: int = 1  # torch CPU threads
     run_dir: str | None = None  # where the logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
-    capture_video: bool = (
-        False  # film episodes 0, 1, 8, 27, ..., 1000, 2000, ... of env 0, and every evaluation episode
-    )
+    capture_video: bool = False  # film env 0's episodes 0, 1, 8, 27, ..., 1000, 2000, ... and each evaluation episode
     # Algorithm: the paper's MuJoCo settings (Table 3) where it gives one, else the implementation detail cited
     env_id: str = "Hopper-v5"  # the id of a gymnasium environment with a Box action space
     total_timesteps: int = 1_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 1M)
@@ -47,6 +45,7 @@ class Args:
     num_envs: int = 1  # number of parallel actors N (paper: 1)
     num_steps: int = 2048  # steps per actor in each rollout, the horizon T (paper: 2048)
     anneal_lr: bool = True  # anneal the learning rate linearly to 0 (core detail 4; Table 3 gives a fixed 3e-4)
+    lr_target_kl: float | None = None  # Table 4: adapt the lr to each update's KL, toward this (with --no-anneal-lr)
     gamma: float = 0.99  # discount factor gamma (paper: 0.99)
     gae_lambda: float = 0.95  # GAE lambda (paper: 0.95)
     minibatch_size: int = 64  # minibatch size (paper: 64); must divide --num-envs x --num-steps
@@ -54,6 +53,7 @@ class Args:
     norm_adv: bool = True  # normalize advantages per minibatch (core detail 7)
     clip_coef: float = 0.2  # clip range epsilon of L^CLIP (paper: 0.2), also the value loss's
     clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef (core detail 9; not in eq. (9))
+    anneal_logstd: tuple[float, float] | None = None  # a log std not learned but annealed linearly (Table 4: -0.7 -1.6)
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
     vf_coef: float = 0.25  # c1 of eq. (9); with separate networks it acts only through the gradient clip
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
@@ -132,6 +132,27 @@ def minibatch_loss(agent, batch, mb_inds, clip_coef, args):
     stats["approx_kl"] = ((ratio - 1) - logratio).mean()
     stats["clipfrac"] = ((ratio - 1.0).abs() > clip_coef).float().mean()
     return loss, {name: stat.detach() for name, stat in stats.items()}
+
+
+def linear_anneal(start, end, fraction):
+    """Table 4's LinearAnneal(start, end), `fraction` of the way through training: the humanoid's log std (§6.3).
+    >>> linear_anneal(-0.7, -1.6, 0.5)
+    -1.15
+    """
+    return start + fraction * (end - start)
+
+
+def kl_adaptive_lr(lr, kl, target_kl):
+    """Table 4's Adam step size, adjusted from the KL of the last update: the paper gives no rule, so this is the one of
+    Schulman's policy-gradient code for the Berkeley deep RL course, in [1e-5, 1e-2] as rsl_rl keeps it.
+    >>> kl_adaptive_lr(3e-4, kl=0.05, target_kl=0.01), kl_adaptive_lr(3e-4, kl=0.001, target_kl=0.01)
+    (0.00019999999999999998, 0.00045)
+    """
+    if kl > 2.0 * target_kl:
+        return max(lr / 1.5, 1e-5)
+    if kl < target_kl / 2.0:
+        return min(lr * 1.5, 1e-2)
+    return lr
 
 
 def gradient_step(agent, optimizer, loss, args):
@@ -281,6 +302,7 @@ def train(args, stop=()):
         obs_dim = envs.single_observation_space.shape[0]
         act_dim = envs.single_action_space.shape[0]
         agent = Agent(obs_dim, act_dim, norm_obs=args.norm_obs).to(device)
+        agent.actor_logstd.requires_grad_(args.anneal_logstd is None)  # Table 4: a schedule sets it, not the gradient
         # Core detail 3: Adam with eps 1e-5. The lr is a tensor: annealing changes a number, not what --compile built.
         lr = torch.tensor(args.learning_rate, device=device)
         optimizer = torch.optim.Adam(agent.parameters(), lr=lr, eps=1e-5, fused=True)
@@ -303,7 +325,10 @@ def train(args, stop=()):
         for iteration in range(checkpoint["iteration"] + 1 if checkpoint else 1, num_iterations + 1):
             # Core detail 4: anneal the learning rate linearly to 0; epsilon stays fixed, as in §6.1.
             alpha = 1.0 - (iteration - 1.0) / num_iterations
-            optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate if args.anneal_lr else args.learning_rate)
+            if args.anneal_lr:
+                optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate)
+            if args.anneal_logstd:  # Table 4: the log std follows a schedule; the lr, the KL (after the update)
+                agent.actor_logstd.fill_(linear_anneal(*args.anneal_logstd, 1.0 - alpha))
 
             # ROLLOUT: run the policy pi_theta_old in N environments for T timesteps.
             with torch.inference_mode():
@@ -351,6 +376,9 @@ def train(args, stop=()):
             residual = batch["returns"] - batch["values"]
             losses["explained_variance"] = (1 - residual.var() / batch["returns"].var()).item()
             log.update(global_step, optimizer.param_groups[0]["lr"].item(), losses)
+            if args.lr_target_kl:  # Table 4: the next update's step size, from this one's KL (the mean logged)
+                step_size = optimizer.param_groups[0]["lr"]
+                step_size.fill_(kl_adaptive_lr(step_size.item(), losses["approx_kl"], args.lr_target_kl))
 
             # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
             if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
@@ -489,6 +517,10 @@ def check_args(args):
             raise ValueError(f"{flag} must be positive, got {value}")
         if not low <= value <= high:
             raise ValueError(f"{flag} must be in [{low}, {high}], got {value}")
+    if args.anneal_logstd and not all(map(math.isfinite, args.anneal_logstd)):
+        raise ValueError(f"--anneal-logstd must be two finite numbers, got {args.anneal_logstd}")
+    if args.lr_target_kl and args.anneal_lr:
+        raise ValueError("--lr-target-kl adapts the learning rate to the KL: add --no-anneal-lr")
     batch = args.num_envs * args.num_steps
     if batch % args.minibatch_size:
         raise ValueError(f"--minibatch-size {args.minibatch_size} does not divide the batch of {batch} steps")

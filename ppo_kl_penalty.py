@@ -39,9 +39,7 @@ class Args:
     compile: bool = False  # torch.compile the minibatch update (slower to start, faster to run)
     torch_threads: int = 1  # torch CPU threads
     run_dir: str | None = None  # where the logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
-    capture_video: bool = (
-        False  # film episodes 0, 1, 8, 27, ..., 1000, 2000, ... of env 0, and every evaluation episode
-    )
+    capture_video: bool = False  # film env 0's episodes 0, 1, 8, 27, ..., 1000, 2000, ... and each evaluation episode
     # Algorithm: the paper's MuJoCo settings (Table 3) where it gives one, else the implementation detail cited
     env_id: str = "Hopper-v5"  # the id of a gymnasium environment with a Box action space
     total_timesteps: int = 1_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 1M)
