@@ -4,6 +4,7 @@
     python benchmarks/throughput.py                 # all three scripts: MuJoCo, then Atari, about 10 minutes
     python benchmarks/throughput.py --suite mujoco  # ppo_continuous.py and ppo_kl_penalty.py on Hopper, about 5 minutes
     python benchmarks/throughput.py --suite atari   # ppo_atari.py on Breakout, about 5 minutes
+    python benchmarks/throughput.py --suite humanoid  # ppo_continuous.py with the paper's Table 4, about 15 minutes
 
 Every measurement runs in a fresh process, one at a time, and the cases are repeated in
 alternation (ours, peer, env, ours, peer, env, ...) so that a slow spell of the machine hits all of
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -59,6 +61,22 @@ SUITES = {
         "peers": ["sb3_ppo_atari"],
         "settings": "8 envs, T=128, K=3 epochs, minibatch 256, Nature CNN, lr and clip annealed",
     },
+    # The paper's §6.3 (Table 4): many actors, whose policy steps are batched. Every case of ours adds "flags"; the
+    # 128-actor case keeps the batch of 16,384 steps with T=128. env: the 32 envs of the same vector env, alone.
+    "humanoid": {
+        "env_id": "Humanoid-v5",
+        "steps": 49152,  # 3 rollouts of 32 x 512
+        "flags": "--num-envs 32 --num-steps 512 --update-epochs 15 --minibatch-size 4096 --anneal-logstd -0.7 -1.6"
+        " --no-anneal-lr --lr-target-kl 0.01",
+        "ours": [
+            "ppo_continuous.py",
+            "ppo_continuous.py --compile",
+            "ppo_continuous.py --num-envs 128 --num-steps 128",
+        ],
+        "peers": ["sb3_ppo_humanoid", "sb3_ppo_humanoid_1thread"],
+        "settings": "Table 4: 32 envs, T=512, K=15 epochs, minibatch 4,096, 64x64 tanh MLPs, log std annealed (SB3:"
+        " fixed at -0.7), lr adapted to the KL (SB3: constant)",
+    },
 }
 
 
@@ -71,7 +89,7 @@ def steady_rate(start, ends):
     return (last_step - first_step) / (last_time - first_time), first_time - start
 
 
-def measure_ours(case, env_id, steps):
+def measure_ours(case, env_id, steps, suite_flags=""):
     import torch
     import tyro
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -80,8 +98,9 @@ def measure_ours(case, env_id, steps):
     module = load_script(script)
     with tempfile.TemporaryDirectory() as tmp:
         args = tyro.cli(
-            module.Args, args=[*flags, "--env-id", env_id, "--total-timesteps", str(steps), "--run-dir", tmp]
-        )  # the defaults
+            module.Args,
+            args=[*suite_flags.split(), *flags, "--env-id", env_id, "--total-timesteps", str(steps), "--run-dir", tmp],
+        )  # the defaults, but for the suite's flags and the case's
         module.check_args(args)
         torch.set_num_threads(args.torch_threads)  # as the script's main() sets the process up before train()
         start = time.time()
@@ -109,7 +128,7 @@ def rollout_ends():
     return Ends()
 
 
-def measure_sb3_ppo_mujoco(env_id, steps, threads=None):
+def measure_sb3_ppo_mujoco(env_id, steps, threads=None, n_envs=1, n_steps=2048, batch_size=64, n_epochs=10):
     import gymnasium as gym
     import torch
     from stable_baselines3 import PPO
@@ -119,21 +138,24 @@ def measure_sb3_ppo_mujoco(env_id, steps, threads=None):
     # cores the intra-op threads slow 64x64 MLPs down, so we also measure it with 1 thread, as ours.
     if threads is not None:
         torch.set_num_threads(threads)
-    envs = VecNormalize(DummyVecEnv([lambda: gym.make(env_id)]), gamma=0.99)
+    table4 = n_envs > 1  # the humanoid's settings: a constant lr and the initial log std of Table 4's schedule
+    envs = VecNormalize(DummyVecEnv([lambda: gym.make(env_id)] * n_envs), gamma=0.99)
     model = PPO(
         "MlpPolicy",
         envs,
-        n_steps=2048,
-        batch_size=64,
-        n_epochs=10,
-        learning_rate=lambda progress_remaining: 3e-4 * progress_remaining,
+        n_steps=n_steps,
+        batch_size=batch_size,
+        n_epochs=n_epochs,
+        learning_rate=3e-4 if table4 else lambda progress_remaining: 3e-4 * progress_remaining,
         gamma=0.99,
         gae_lambda=0.95,
         clip_range=0.2,
         ent_coef=0.0,
         vf_coef=0.5,
         max_grad_norm=0.5,
-        policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=torch.nn.Tanh, log_std_init=0.0),
+        policy_kwargs=dict(
+            net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=torch.nn.Tanh, log_std_init=-0.7 if table4 else 0.0
+        ),
         device="cpu",
         seed=1,
         verbose=0,
@@ -193,6 +215,22 @@ def measure_atari_env(env_id, steps):
     return steps / (time.perf_counter() - start), None
 
 
+def measure_vector_env(env_id, steps, suite_flags):
+    """The envs alone, as ppo_continuous.py makes them from the suite's flags, stepped with random actions."""
+    import numpy as np
+    import tyro
+
+    module = load_script("ppo_continuous.py")
+    args = tyro.cli(module.Args, args=[*suite_flags.split(), "--env-id", env_id])
+    envs = module.make_envs(args, None, None)
+    envs.reset(seed=list(range(envs.num_envs)))
+    envs.action_space.seed(1)
+    start = time.perf_counter()
+    for _ in range(steps // envs.num_envs):
+        envs.step(np.clip(envs.action_space.sample(), -0.4, 0.4))
+    return steps / (time.perf_counter() - start), None
+
+
 def measure_env(env_id, steps):
     import gymnasium as gym
 
@@ -207,9 +245,15 @@ def measure_env(env_id, steps):
     return steps / (time.perf_counter() - start), None
 
 
-def run_worker(case, env_id, steps):
+def run_worker(case, env_id, steps, suite):
+    suite_flags = SUITES[suite].get("flags", "")
     if case.startswith("ppo_"):
-        sps = measure_ours(case, env_id, steps)
+        sps = measure_ours(case, env_id, steps, suite_flags)
+    elif case.startswith("sb3_ppo_humanoid"):
+        table4 = dict(n_envs=32, n_steps=512, batch_size=4096, n_epochs=15)
+        sps = measure_sb3_ppo_mujoco(env_id, steps, 1 if case.endswith("1thread") else None, **table4)
+    elif case == "env" and suite_flags:
+        sps = measure_vector_env(env_id, steps, suite_flags)
     elif case == "sb3_ppo_atari":
         sps = measure_sb3_ppo_atari(env_id, steps)
     elif case == "env" and "NoFrameskip" in env_id:
@@ -228,8 +272,8 @@ def run_worker(case, env_id, steps):
 # ORCHESTRATION
 
 
-def measure(case, env_id, steps):
-    cmd = [sys.executable, __file__, "--worker", case, "--env-id", env_id, "--steps", str(steps)]
+def measure(case, env_id, steps, suite):
+    cmd = [sys.executable, __file__, "--worker", case, "--env-id", env_id, "--steps", str(steps), "--suite", suite]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     if proc.returncode != 0:
         raise SystemExit(f"{case} failed:\n{proc.stderr[-3000:]}")
@@ -257,7 +301,7 @@ def main():
     parser.add_argument("--env-id", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
-        return run_worker(args.worker, args.env_id, args.steps)
+        return run_worker(args.worker, args.env_id, args.steps, args.suite)
     if (args.steps is not None and args.steps <= 0) or args.repeats <= 0:
         parser.error("--steps and --repeats must be positive")
     for name in list(SUITES) if args.suite == "all" else [args.suite]:
@@ -289,11 +333,12 @@ def measure_suite(name, steps, repeats):
     env_id = suite["env_id"]
     ours = [case for case in suite["ours"] if (ROOT / case.split()[0]).exists()]
     cases = [*ours, *suite["peers"], "env"]
+    load_at_start = os.getloadavg()[0]
     samples, firsts = {case: [] for case in cases}, {case: [] for case in cases}
     total, done, start = len(cases) * repeats, 0, time.time()
     for _ in range(repeats):
         for case in cases:
-            sps, first = measure(case, env_id, steps)
+            sps, first = measure(case, env_id, steps, name)
             samples[case].append(sps)
             firsts[case].append(first)
             done += 1
@@ -339,8 +384,17 @@ def measure_suite(name, steps, repeats):
         " run with torch's default threads, as SB3 users run it, `sb3_ppo_mujoco_1thread` with 1 thread,"
         " as ppo_continuous.py. `env` is the environment alone with random actions"
         " (for Atari, ale-py's vector env as ppo_atari.py makes it).",
+        *(
+            [
+                f"- Every case of ours adds `{suite['flags']}` (the `humanoid` suite of `benchmarks/run.py`);"
+                " `sb3_ppo_humanoid` steps its 32 envs in SB3's usual DummyVecEnv, with VecNormalize;"
+                " `env` steps the 32 envs of ppo_continuous.py's SyncVectorEnv alone."
+            ]
+            if "flags" in suite
+            else []
+        ),
         "- The other process sharing the machine during the run, if any, is not controlled:"
-        " compare ratios, not absolute figures.",
+        f" compare ratios, not absolute figures (load average at the start: {load_at_start:.1f}).",
         f"- Command: `{command.strip()}`",
         f"- Commit: {commit()}; date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
         f"- Versions: {versions(('torch', 'numpy', 'gymnasium', 'mujoco', 'ale-py', 'stable-baselines3'))}",

@@ -256,6 +256,11 @@ BAD_INPUTS = [
     (["--resume", "missing.pt"], "does not exist"),
     (["--eval-checkpoint", "corrupt.pt"], "corrupt"),
     (["--resume", "notacheckpoint.pt"], "not a checkpoint"),
+    (["--anneal-logstd", "nan", "-1.6"], "--anneal-logstd must be two finite numbers"),
+    (["--anneal-logstd", "-0.7", "inf"], "--anneal-logstd must be two finite numbers"),
+    (["--lr-target-kl", "0", "--no-anneal-lr"], "--lr-target-kl must be positive"),
+    (["--lr-target-kl", "nan", "--no-anneal-lr"], "--lr-target-kl must be a finite number"),
+    (["--lr-target-kl", "0.01"], "--lr-target-kl adapts the learning rate to the KL: add --no-anneal-lr"),
 ]
 
 
