@@ -46,6 +46,10 @@ COLUMNS = {
         ("paper_fig3", "paper, Fig. 3 (approx.; clip 0.2)", "clip0.2"),
         ("cleanrl_1M", "CleanRL 1M (-v4; clip 0.2)", "clip0.2"),
     ],
+    "humanoid": [
+        ("cleanrl_1M", "CleanRL 1M (-v4; 1 env, Table 3's settings)", "clip0.2"),
+        ("samplefactory_humanoid", "Sample Factory APPO (-v4; its trained agent)", "appo"),
+    ],
     "atari": [
         ("paper_table6", "paper, Table 6: last 100 at 10M steps (10x our budget)", "default"),
         ("cleanrl_atari_10M", "CleanRL: last 100 at 10M steps (10x our budget)", "default"),
@@ -449,6 +453,8 @@ def tables(folder, runs, reference, results, level="##"):
         lines += ["", f"{level} Scores", ""]
     if kind == "atari":
         return lines + atari_table(runs, reference, variants, results) + atari_comparison(runs, variants)
+    if kind == "humanoid":  # §6.3: both metrics, as for Figure 3, beside the published figures
+        return lines + humanoid_table(runs, reference, variants, results)
     lines += score_table(runs, reference, COLUMNS[kind], variants, results)
     if (
         kind == "mujoco" and len(variants) > 1
@@ -503,6 +509,26 @@ def comparison(runs, reference, variants):
                     "–" if not paper else f"{'yes' if statistics.mean(scores) >= paper[0] else 'no'} ({fmt(paper[0])})"
                 )
                 lines.append(f"| {env} | {v} | {fmt(*mean_std(scores))} ({len(scores)}) | {diff} | {reached} |")
+    return lines
+
+
+def humanoid_table(runs, reference, variants, results):
+    """Per variant, the mean ± std over seeds of the last 100 episodes and of every episode of training; then the
+    random policy and the published figures for PPO on gymnasium's Humanoid, each at its own budget and settings."""
+    by_env = group(runs)
+    lines = ["| env | setting | steps | last 100 (n) | all training (n) |", "|---|---|---|---|---|"]
+    for env in sorted(by_env):
+        for v in [v for v in variants if v in by_env[env]]:
+            last = [r.score for r in by_env[env][v]]
+            whole = [mean_return(r.rows) for r in by_env[env][v]]
+            steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in by_env[env][v]}))
+            n = len(last)
+            lines.append(f"| {env} | {v} | {steps} | {fmt(*mean_std(last))} ({n}) | {fmt(*mean_std(whole))} ({n}) |")
+        rand = random_score(env, results)
+        lines += ["", f"The random policy on {env}: {fmt(rand) if rand is not None else 'not measured'}."]
+        for column, title, setting in COLUMNS["humanoid"]:
+            ref = reference.get((column, env_base(env), setting))
+            lines.append(f"- {title}: {fmt(ref[0], ref[1]) if ref else '–'}")
     return lines
 
 
@@ -621,6 +647,7 @@ def report(folder, reference=None, results=RESULTS):
     for env in sorted({r.env_id for r in runs}):
         png = plot_env(folder, env, [r for r in runs if r.env_id == env], variants)
         lines.append(f"![{env}](curves/{png.name})")
+    lines += video_section(folder)
     lines += beta_section(folder)
     if (
         kind == "mujoco" and len(suite_variants(suite_name(folder))) > 1
@@ -1113,6 +1140,12 @@ def readme_block(results=RESULTS, reference=None, full=False):
             if comparison:  # the arms' differences from the default: in report.md and benchmarks/README.md only
                 table = table[: comparison[0] - 1]
             lines += ["", f"**{heading}** ([report]({rel}/report.md))", "", *table]
+            frames = sorted((folder / "video").glob("*.png"))  # a frame of the trained policy's video
+            lines += (
+                ["", " ".join(f'<img src="{rel}/video/{frame.name}" width="32%">' for frame in frames)]
+                if frames
+                else []
+            )
     return "\n".join(lines + ["", README_END])
 
 
@@ -1255,6 +1288,19 @@ def plot_env(folder, env, runs, variants):
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")
     return save_figure(fig, folder, f"{env.replace('/', '-')}.png")
+
+
+def video_section(folder):
+    """The trained policy, filmed by ppo_continuous.py --eval-checkpoint --capture-video: a frame and the video."""
+    videos = sorted((Path(folder) / "video").glob("*.mp4"))
+    if not videos:
+        return []
+    lines = ["", "## The trained policy", ""]
+    for video in videos:
+        if video.with_suffix(".png").exists():
+            lines += [f"[![{video.stem}](video/{video.stem}.png)](video/{video.name})", ""]
+        lines += [f"[video/{video.name}](video/{video.name}): {video.stem.replace('__', ', ')}", ""]
+    return lines
 
 
 def read_beta(folder):

@@ -904,3 +904,17 @@ def test_sb3_mujoco_reads_the_rl_zoos_entry_for_the_task():
     params, source = sb3.hyperparameters("a2c", "Reacher-v5")
     assert source.endswith("entry default (the Zoo has no entry for this task: SB3's defaults)")
     assert "normalize" not in params and params["policy"] == "MlpPolicy"
+
+
+def test_humanoid_report_has_both_metrics_the_published_figures_and_the_video(tmp_path):
+    folder = tmp_path / "results" / "humanoid"
+    fake_run(folder, "Humanoid-v5", "table4", 1, 1000.0)
+    fake_run(folder, "Humanoid-v5", "table4", 2, 3000.0)
+    (folder / "video").mkdir()
+    (folder / "video" / "Humanoid-v5__table4__seed1.mp4").write_bytes(b"")
+    text = report.report(folder, results=tmp_path / "results")
+    # last 100: 1,000 and 3,000; all training: (50 x -10,000 + 100 x score) / 150 = -2,666.7 and -1,333.3
+    assert "| Humanoid-v5 | table4 | 100,000 | 2,000 ± 1,414 (2) | -2,000 ± 943 (2) |" in text
+    assert "- CleanRL 1M (-v4; 1 env, Table 3's settings): 716.1 ± 49.1" in text
+    assert "[video/Humanoid-v5__table4__seed1.mp4](video/Humanoid-v5__table4__seed1.mp4)" in text
+    assert (folder / "curves" / "Humanoid-v5.png").exists()
