@@ -3,6 +3,7 @@ grid before it starts anything, and the report's arithmetic is the paper's."""
 
 import contextlib
 import csv
+import json
 import math
 import os
 import signal
@@ -918,3 +919,36 @@ def test_humanoid_report_has_both_metrics_the_published_figures_and_the_video(tm
     assert "- CleanRL 1M (-v4; 1 env, Table 3's settings): 716.1 ± 49.1" in text
     assert "[video/Humanoid-v5__table4__seed1.mp4](video/Humanoid-v5__table4__seed1.mp4)" in text
     assert (folder / "curves" / "Humanoid-v5.png").exists()
+
+
+def test_film_records_the_runs_policy_and_a_frame_of_it(tmp_path, tiny_run):
+    import film
+    import imageio.v3 as iio
+
+    (job,) = run.make_grid("mujoco", envs=["Hopper"], seeds=[1], runs_root=tmp_path / "runs")
+    job.run_dir.mkdir(parents=True)
+    with pytest.raises(ValueError, match="has no checkpoint"):
+        film.film(job, tmp_path / "video")
+    torch.save(torch.load(tiny_run("ppo_continuous.py")[0] / "checkpoint.pt", weights_only=True), job.checkpoint)
+    video, line = film.film(job, tmp_path / "video")
+    assert video == tmp_path / "video" / "Hopper-v5__clip0.2__seed1.mp4" and line.startswith("eval Hopper-v5 step ")
+    frame = iio.imread(video.with_suffix(".png"))
+    assert frame.ndim == 3 and frame.std() > 0, "a frame of the film, not a blank"
+    assert not list(job.run_dir.glob("videos-eval")), "the run's own folder is left as it was"
+
+
+def test_throughput_humanoid_case_measures_ours_sb3_and_the_envs_with_table4(capsys):
+    import throughput
+
+    flags = throughput.SUITES["humanoid"]["flags"]
+    assert "--num-envs 32 --num-steps 512 --update-epochs 15 --minibatch-size 4096" in flags
+    # Table 4 on a tiny rollout (the case's flags come after the suite's): 3 iterations of 32 x 8 steps
+    sps, first = throughput.measure_ours(
+        "ppo_continuous.py --num-steps 8 --minibatch-size 128", "Humanoid-v5", 768, flags
+    )
+    assert sps > 0 and first > 0
+    tiny = dict(n_envs=32, n_steps=8, batch_size=128, n_epochs=1)
+    sps, first = throughput.measure_sb3_ppo_mujoco("Humanoid-v5", 768, threads=1, **tiny)
+    assert sps > 0 and first > 0
+    throughput.run_worker("env", "Humanoid-v5", 64, "humanoid")  # the 32 envs of ppo_continuous.py, alone
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["sps"] > 0
