@@ -1,3 +1,8 @@
+# /// script
+# requires-python = ">=3.11"
+# dependencies = ["torch==2.13.0", "numpy==2.4.6", "gymnasium==1.4.0", "ale-py==0.12.1", "tyro==1.0.17",
+#   "tensorboard==2.21.0", "imageio==2.38.1", "imageio-ffmpeg==0.8.1", "wandb==0.31.0"]
+# ///
 """PPO-Clip for Atari, in one file.
 
 Proximal Policy Optimization (Schulman et al. 2017, arXiv:1707.06347) as §6.4 ran it: a CNN shared by policy and value
@@ -11,6 +16,7 @@ detail N" (of 9). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes
     python ppo_atari.py --help                           # every flag, with its default
 """
 
+import atexit
 import contextlib
 import math
 import os
@@ -39,6 +45,9 @@ class Args:
     torch_threads: int = 2  # torch CPU threads (the CNN's convolutions use a second thread)
     run_dir: str | None = None  # where the logs and the checkpoint go (runs/{env_id}__{exp_name}__{seed}__{time})
     capture_video: bool = False  # film games 0, 1, 8, 27, ... of the first env in training, and every evaluation game
+    track: bool = False  # mirror the TensorBoard scalars and the videos to Weights & Biases, as CleanRL's --track
+    wandb_project_name: str = "ppo"  # the W&B project of a --track run
+    wandb_entity: str | None = None  # the W&B team or user of a --track run (None: your default entity)
     # Algorithm: the paper's Atari settings (Table 5) where it gives one, else the implementation detail cited
     env_id: str = "BreakoutNoFrameskip-v4"  # <Game>NoFrameskip-v4 as in the paper, or ALE/<Game>-v5 (sticky actions)
     total_timesteps: int = 10_000_000  # total agent steps over all envs, rounded down to whole batches (paper: 10M)
@@ -216,7 +225,7 @@ def train(args, stop=()):
     from torch.utils.tensorboard import SummaryWriter
 
     checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
-    run_dir = args.run_dir or f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_dir = args.run_dir or new_run_dir(args)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     global_step = checkpoint["global_step"] if checkpoint else 0
     device = pick_device(args.device)
@@ -540,6 +549,30 @@ def check_args(args):
         raise ValueError(f"--run-dir {run_dir} cannot be created or written: {e.strerror}") from None
 
 
+def new_run_dir(args):
+    return f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+
+
+def start_tracking(args):
+    """--track: a Weights & Biases run, named after the run directory so that --resume continues it, mirrors the
+    TensorBoard scalars and keeps the videos. With no login or no network it logs offline, for `wandb sync`."""
+    import wandb
+
+    run = load_checkpoint(args.resume, args)[1] if args.resume else args  # a resumed run: its own hyperparameters
+    run.run_dir = run.run_dir or new_run_dir(args)  # for a new run, run is args: train() writes there too
+    name = os.path.basename(os.path.abspath(run.run_dir))
+    init = dict(project=args.wandb_project_name, entity=args.wandb_entity, name=name, id=name, config=asdict(run))
+    init |= dict(sync_tensorboard=True, save_code=True, resume="allow")
+    try:
+        wandb.init(**init)
+    except wandb.Error as e:  # no login, or no answer within W&B's timeout: training goes on, logged offline
+        print(f"wandb: {e}: logging offline instead, for `wandb sync` to upload", file=sys.stderr)
+        wandb.teardown()
+        wandb.init(**init, mode="offline")
+    videos = os.path.join(os.path.abspath(run.run_dir), "videos", "*.mp4")  # all filmed once the process ends
+    atexit.register(wandb.save, videos, base_path=run.run_dir, policy="now")
+
+
 def main():
     import tyro
 
@@ -552,6 +585,8 @@ def main():
     torch.set_num_threads(args.torch_threads)
     if args.eval_checkpoint is not None:
         return evaluate(args)
+    if args.track:  # W&B's run, and its patch of TensorBoard's writer, belong to the process: main() starts them
+        start_tracking(args)
     # A training run owns the process: Ctrl-C and SIGTERM only set the flag that train() reads after each iteration.
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):

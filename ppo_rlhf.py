@@ -1,3 +1,7 @@
+# /// script
+# requires-python = ">=3.11"
+# dependencies = ["torch==2.13.0", "tyro==1.0.17", "tensorboard==2.21.0", "wandb==0.31.0"]
+# ///
 """PPO as RLHF uses it, in one file: the three stages of Ziegler et al. 2019 (arXiv:1909.08593) on a tiny transformer
 trained from scratch on a synthetic language of film reviews. Stage 1 fits pi_SFT to the language, stage 2 a reward
 model to pairs of pi_SFT's samples ranked by a hidden gold reward, and stage 3 fine-tunes pi_SFT on the RM's score
@@ -35,6 +39,9 @@ class Args:
     compile: bool = False  # apply torch.compile to the PPO minibatch update
     torch_threads: int = 1  # torch CPU threads
     run_dir: str | None = None  # where logs and checkpoints go (None: runs/reviews__{exp_name}__{seed}__{time})
+    track: bool = False  # mirror the TensorBoard scalars to Weights & Biases, as CleanRL's --track
+    wandb_project_name: str = "ppo"  # the W&B project of a --track run
+    wandb_entity: str | None = None  # the W&B team or user of a --track run (None: your default entity)
     # The networks: one causal transformer shape for pi_SFT, the reward model, the policy and the critic
     d_model: int = 64  # width of the transformer
     n_layer: int = 2  # number of transformer blocks
@@ -518,7 +525,7 @@ def train(args, stop=()):
     from torch.utils.tensorboard import SummaryWriter
 
     checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
-    run_dir = args.run_dir or f"runs/reviews__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_dir = args.run_dir or new_run_dir(args)
     device = torch.device("cpu" if args.device == "auto" else args.device)
     if checkpoint:  # a resumed stage 3: stages 1 and 2 are in its checkpoint
         sft = new_model(args, device, checkpoint["reference"])
@@ -613,6 +620,29 @@ def check_args(args):
         load_checkpoint(args.resume, args)
 
 
+def new_run_dir(args):
+    return f"runs/reviews__{args.exp_name}__{args.seed}__{int(time.time())}"
+
+
+def start_tracking(args):
+    """--track: a Weights & Biases run, named after the run directory so that --resume continues it, mirrors the
+    TensorBoard scalars. With no login or no network, it logs offline for `wandb sync` to upload."""
+    import wandb
+
+    # a resumed run: its own hyperparameters
+    run = load_checkpoint(args.resume, args, "ppo")[1] if args.resume else args
+    run.run_dir = run.run_dir or new_run_dir(args)  # for a new run, run is args: train() writes there too
+    name = os.path.basename(os.path.abspath(run.run_dir))
+    init = dict(project=args.wandb_project_name, entity=args.wandb_entity, name=name, id=name, config=asdict(run))
+    init |= dict(sync_tensorboard=True, save_code=True, resume="allow")
+    try:
+        wandb.init(**init)
+    except wandb.Error as e:  # no login, or no answer within W&B's timeout: training goes on, logged offline
+        print(f"wandb: {e}: logging offline instead, for `wandb sync` to upload", file=sys.stderr)
+        wandb.teardown()
+        wandb.init(**init, mode="offline")
+
+
 def main():
     import tyro
 
@@ -623,6 +653,8 @@ def main():
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts
         sys.exit(2)
     torch.set_num_threads(args.torch_threads)
+    if args.track:  # W&B's run, and its patch of TensorBoard's writer, belong to the process: main() starts them
+        start_tracking(args)
     # A training run owns the process: Ctrl-C and SIGTERM only set the flag that each stage reads after each step.
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -23,8 +23,9 @@ def mentioned_details(line):
 
 
 def test_readme_is_short():
-    # About 250: the RLHF section (issues 29, 40: its GRPO arm and what the suite shows) and Figure 3 (issue 41).
-    assert len(README.splitlines()) <= 255
+    # About 250: the RLHF section (issues 29, 40: its GRPO arm and what the suite shows) and Figure 3 (issue 41);
+    # then Table 4's command and the humanoid's result, --track and `uv run` (issues 48, 50).
+    assert len(README.splitlines()) <= 275
 
 
 def test_every_detail_links_to_a_line_that_cites_it():
