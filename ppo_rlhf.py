@@ -74,8 +74,8 @@ class Args:
     max_grad_norm: float = 1.0  # clip the global gradient norm to this
     no_eos_score: float = -3.0  # the score of a response that never ends (no EOS), in the RM's normalized units
     value_model: Literal["reward-model", "policy-head"] = "reward-model"  # a critic started from the RM, or a head
-    advantage: Literal["gae", "grpo"] = "gae"  # gae: the critic and GAE; grpo: each response against its group's
-    group_size: int = 8  # grpo: responses sampled for each prompt, one group; must divide --batch-size
+    advantage: Literal["gae", "grpo", "dr-grpo", "rloo"] = "gae"  # gae: the critic and GAE; else a group baseline
+    group_size: int = 8  # grpo, dr-grpo, rloo: responses sampled for each prompt, one group; divides --batch-size
     sft_checkpoint: str | None = None  # skip stage 1: take pi_SFT from this sft.pt
     reward_model_checkpoint: str | None = None  # skip stage 2: take the reward model from this reward_model.pt
     save_every: int = 25  # save the PPO checkpoint, and print samples, every this many iterations (and at the end)
@@ -89,7 +89,12 @@ def masked_mean(x, mask=None):
 
 def compute_rewards(scores, logprobs, ref_logprobs, mask, kl_coef):
     """Ziegler et al.'s R(x, y) = r(x, y) - beta log(pi(y|x) / pi_SFT(y|x)) over the tokens [B, L]: -beta times each
-    token's log-ratio, and the score at the last masked position (a row with no EOS gets its penalty as its score)."""
+    token's log-ratio, and the score at the last masked position (a row with no EOS gets its penalty as its score).
+
+    Its expectation over pi's responses is the objective E[r] - beta KL[pi || pi_SFT], whose maximum is pi* = pi_SFT
+    exp(r / beta) / Z. So beta sets how far pi may move from pi_SFT; at beta = 0 the optimum is the argmax of r, one
+    response (the entropy collapses onto whatever the RM overrates); the log-ratio (k1) sits in the reward because
+    its mean over pi's own samples is that KL; and DPO (Rafailov et al. 2023) solves for pi* from pairs directly."""
     rewards = kl_coef * (ref_logprobs - logprobs) * mask
     rewards[torch.arange(len(scores)), mask.sum(1).long() - 1] += scores
     return rewards
@@ -115,13 +120,26 @@ def compute_gae(rewards, values, mask, gamma, gae_lambda):
     return advantages, advantages + values
 
 
-def group_advantages(rewards, mask, group_size):
-    """GRPO's advantage (Shao et al. 2024, arXiv:2402.03300, §4.1.2), in place of GAE and a critic: each response's
-    summed reward minus its group's mean (a group: consecutive rows, one prompt), over the group's std, at each of its
-    tokens. DeepSeek's GRPO and TRL's add an estimate of beta KL[pi || pi_ref] to the loss instead: here it stays in
-    the reward, as in PPO, so that only the advantage differs."""
+def group_advantages(rewards, mask, group_size, kind="grpo"):
+    """A critic-free advantage, at each token of a response: its summed reward minus a baseline from the other
+    responses to its prompt (a group: consecutive rows). grpo (Shao et al. 2024, arXiv:2402.03300, §4.1.2): minus the
+    group's mean, over the group's std; dr-grpo (Liu et al. 2025): without the std; rloo (Ahmadian et al. 2024): minus
+    the mean of the others. The KL penalty stays in the reward, as in PPO (DeepSeek's GRPO and TRL's add it to the
+    loss): so grpo's division scales it too, and its effective beta is beta / std of the group's rewards. The loss
+    averages over all the minibatch's tokens, as for PPO, where DeepSeekMath averages each response's tokens first (a
+    bias toward short responses, Liu et al. find: Dr. GRPO drops it too).
+
+    >>> r = torch.tensor([[1.0], [2.0], [6.0]])
+    >>> [group_advantages(r, torch.ones(3, 1), 3, kind).flatten().tolist() for kind in ("dr-grpo", "rloo")]
+    [[-2.0, -1.0, 3.0], [-3.0, -1.5, 4.5]]
+    """
     returns = rewards.sum(1).view(-1, group_size)
-    advantages = (returns - returns.mean(1, keepdim=True)) / (returns.std(1, keepdim=True) + 1e-8)
+    baseline = returns.mean(1, keepdim=True)
+    if kind == "rloo":
+        baseline = (returns.sum(1, keepdim=True) - returns) / (group_size - 1)
+    advantages = returns - baseline
+    if kind == "grpo":
+        advantages = advantages / (returns.std(1, keepdim=True) + 1e-8)
     return advantages.view(-1, 1) * mask
 
 
@@ -176,6 +194,7 @@ PAD, BOS, EOS = range(3)
 TOKEN = {word: i for i, word in enumerate(WORDS)}
 PROMPT_LENGTH = 3  # "<bos> the NOUN": a response goes on from there
 BLOCK_SIZE = 32  # the longest sequence, prompt and response, that the networks take
+POOL = 16  # responses of each rollout added to the pool on which the RM's accuracy is measured
 GOLD_PENALTY = -6.0  # the gold score of text a reader rejects, garbled or spam: that of one "very awful" clause
 CLAUSE = rf"the ({'|'.join(NOUNS)}) was (?:(very|not) )?({'|'.join(VALENCE)})"
 
@@ -197,6 +216,16 @@ def sample_review(rng):
     return " and ".join(clauses).split() + ["<eos>"]
 
 
+def review_form(text):
+    """How a reader takes a text: "garbled" outside the grammar, "spam" if it says a clause twice word for word, else
+    "well formed". The reward model never saw spam: pi_SFT's samples never repeat a clause, a blind spot planted in
+    its data, which a policy without a leash finds."""
+    if not re.fullmatch(rf"{CLAUSE}( and {CLAUSE})* <eos>", text):
+        return "garbled"
+    clauses = re.findall(CLAUSE, text)
+    return "spam" if len(set(clauses)) < len(clauses) else "well formed"
+
+
 def parse_review(text):
     """The gold value of a review as a reader judges it, or None if it is not well formed: the sum of its clauses'
     valences (x2 after "very", x-1 after "not"), unless it says a clause twice word for word. A reader takes praise
@@ -207,21 +236,21 @@ def parse_review(text):
     >>> parse_review("the film was good and the film was good <eos>")
     -6.0
     """
-    if not re.fullmatch(rf"{CLAUSE}( and {CLAUSE})* <eos>", text):
-        return None
-    clauses = re.findall(CLAUSE, text)
-    if len(set(clauses)) < len(clauses):
-        return GOLD_PENALTY
-    return sum(MODIFIERS.get(modifier, 1) * VALENCE[adjective] for _, modifier, adjective in clauses)
+    form = review_form(text)
+    if form != "well formed":
+        return None if form == "garbled" else GOLD_PENALTY
+    return sum(MODIFIERS.get(modifier, 1) * VALENCE[adjective] for _, modifier, adjective in re.findall(CLAUSE, text))
 
 
 def gold_scores(tokens, mask):
-    """The hidden gold reward of each sequence [B, T], and whether it is well formed: what the RM should learn."""
+    """The hidden gold reward of each sequence [B, T], what the RM should learn, and the share of each form of text
+    {well_formed, spam, garbled}, each a [B] tensor of 0s and 1s: the hacks by name."""
     lengths = (PROMPT_LENGTH + mask.sum(1).long()).tolist()
     texts = [" ".join(WORDS[t] for t in row[1:n]) for row, n in zip(tokens.tolist(), lengths, strict=True)]
-    values = [parse_review(text) for text in texts]
-    gold = torch.tensor([GOLD_PENALTY if value is None else float(value) for value in values])
-    return gold.to(tokens.device), torch.tensor([value is not None for value in values]).float().to(tokens.device)
+    gold = torch.tensor([GOLD_PENALTY if (value := parse_review(text)) is None else float(value) for text in texts])
+    forms = [review_form(text) for text in texts]
+    shares = {name: [form == name.replace("_", " ") for form in forms] for name in ("well_formed", "spam", "garbled")}
+    return gold.to(tokens.device), {name: torch.tensor(x).float().to(tokens.device) for name, x in shares.items()}
 
 
 @torch.no_grad()
@@ -306,8 +335,9 @@ def report(stage, done, total, start, text, first=0):
         print(f"{stage} {done:,}/{total:,} | {text} | ETA {eta:.1f} min", flush=True)
 
 
-def fit(model, loss_fn, steps, learning_rate, stage, stop):
-    """Stages 1 and 2: `steps` Adam steps on loss_fn(step), with the loss in the progress lines."""
+def fit(model, loss_fn, steps, learning_rate, stage, stop, saved):
+    """Stages 1 and 2: `steps` Adam steps on loss_fn(step), with the loss in the progress lines. `saved`: what a stop
+    leaves on disk, and how to go on from it."""
     optimizer = torch.optim.Adam(model.parameters(), lr=learning_rate)
     start = time.time()
     for step in range(1, steps + 1):
@@ -319,7 +349,7 @@ def fit(model, loss_fn, steps, learning_rate, stage, stop):
             raise Diverged(f"the loss of stage {stage} is not finite at step {step}; try a smaller learning rate")
         report(f"stage {stage}: step", step, steps, start, f"loss {loss.item():.3f}")
         if stop:
-            raise Stopped(f"stopped in stage {stage} at step {step}; the stages before it are saved")
+            raise Stopped(f"stopped in stage {stage} at step {step}; {saved}")
 
 
 def train_sft(args, run_dir, device, stop):
@@ -336,7 +366,7 @@ def train_sft(args, run_dir, device, stop):
         # The EOS is a target like any word; the PADs after it are none.
         return F.cross_entropy(sft(tokens[:, :-1])[0].transpose(1, 2), tokens[:, 1:], ignore_index=PAD)
 
-    fit(sft, loss_fn, args.sft_steps, args.sft_learning_rate, "1, SFT", stop)
+    fit(sft, loss_fn, args.sft_steps, args.sft_learning_rate, "1, SFT", stop, "nothing is saved yet: start again")
     save_checkpoint(os.path.join(run_dir, "sft.pt"), "sft", args, model=sft.state_dict())
     return sft
 
@@ -368,7 +398,8 @@ def train_reward_model(args, sft, run_dir, device, stop):
         return preference_loss(r_w, reward_model.score(tokens[rejected[mb_inds]], mask[rejected[mb_inds]]))
 
     steps = math.ceil(len(order) / args.rm_batch_size)
-    fit(reward_model, loss_fn, steps, args.rm_learning_rate, "2, reward model", stop)
+    saved = f"stage 1 is saved: go on with --sft-checkpoint {args.sft_checkpoint or os.path.join(run_dir, 'sft.pt')}"
+    fit(reward_model, loss_fn, steps, args.rm_learning_rate, "2, reward model", stop, saved)
     with torch.no_grad():
         scores = reward_model.score(tokens, mask)
         accuracy = (scores[chosen[n_train:]] > scores[rejected[n_train:]]).float().mean().item()
@@ -384,7 +415,7 @@ def train_reward_model(args, sft, run_dir, device, stop):
 @torch.no_grad()
 def rollout(agent, reference, reward_model, args):
     """Responses to prompts from pi_theta_old (--group-size a prompt with GRPO), and what PPO needs, [B, ...] each."""
-    group_size = args.group_size if args.advantage == "grpo" else 1
+    group_size = 1 if args.advantage == "gae" else args.group_size
     n = args.batch_size // group_size
     tokens, mask = generate(agent.policy, n, args.response_length, args.temperature, group_size)
     responses = tokens[:, PROMPT_LENGTH:]
@@ -394,20 +425,23 @@ def rollout(agent, reference, reward_model, args):
     ref_logprobs = response_dist(reference(tokens)[0], args.temperature).log_prob(responses)
     has_eos = (responses == EOS).any(1)
     scores = torch.where(has_eos, reward_model.score(tokens, mask), args.no_eos_score)
-    gold, well_formed = gold_scores(tokens, mask)
+    gold, forms = gold_scores(tokens, mask)
     batch = {"tokens": tokens, "responses": responses, "mask": mask, "logprobs": dist.log_prob(responses)}
     batch |= {"ref_logprobs": ref_logprobs, "values": values[:, PROMPT_LENGTH - 1 : -1] * mask, "scores": scores}
-    return batch | {"gold": gold, "well_formed": well_formed, "has_eos": has_eos.float(), "entropy": dist.entropy()}
+    return batch | forms | {"gold": gold, "has_eos": has_eos.float(), "entropy": dist.entropy()}
 
 
-def response_stats(batch):
-    """What a batch of responses shows: its scores, its KL to pi_SFT (per response, in nats), and its form."""
+def response_stats(batch, pool):
+    """What a batch of responses shows: its scores, its KL to pi_SFT (per response, in nats), its forms; and how often
+    the RM ranks as gold does the pairs of different gold in `pool`, (RM scores, gold) of responses the policy wrote."""
     mask = batch["mask"]
     stats = {"score": batch["scores"].mean(), "gold_score": batch["gold"].mean()}
     stats["kl"] = ((batch["logprobs"] - batch["ref_logprobs"]) * mask).sum(1).mean()
-    stats |= {"entropy": masked_mean(batch["entropy"], mask), "well_formed": batch["well_formed"].mean()}
+    stats |= {name: batch[name].mean() for name in ("well_formed", "spam", "garbled")}
+    stats["entropy"] = masked_mean(batch["entropy"], mask)
     stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
-    stats["rm_accuracy"] = pairwise_accuracy(batch["scores"], batch["gold"])
+    stats["rm_accuracy"] = pairwise_accuracy(*pool)
+    stats["rm_pairs"] = (pool[1][:, None] > pool[1][None, :]).sum()
     return {f"rlhf/{name}": value.item() for name, value in stats.items()}
 
 
@@ -421,14 +455,15 @@ def ppo_update(agent, optimizer, mb, args):
     ratio = logratio.exp()  # r_t(theta), paper eq. (6)
     pg_loss = clipped_surrogate_loss(ratio, mb["advantages"], args.clip_coef, mask)
     v_loss = value_loss(newvalues[:, PROMPT_LENGTH - 1 : -1], mb["values"], mb["returns"], args.clip_coef, True, mask)
-    # GRPO has no critic to fit: its loss is L^CLIP alone.
+    # A group baseline has no critic to fit: its loss is L^CLIP alone, and it logs no value loss.
     loss = pg_loss + args.vf_coef * v_loss if args.advantage == "gae" else pg_loss
     optimizer.zero_grad()
     loss.backward()
     nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)  # core detail 11
     optimizer.step()
     # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[old, new].
-    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": masked_mean(dist.entropy(), mask)}
+    stats = {"policy_loss": pg_loss, "entropy": masked_mean(dist.entropy(), mask)}
+    stats |= {"value_loss": v_loss} if args.advantage == "gae" else {}
     stats |= {"old_approx_kl": masked_mean(-logratio, mask), "approx_kl": masked_mean((ratio - 1) - logratio, mask)}
     stats |= {"clipfrac": masked_mean(((ratio - 1.0).abs() > args.clip_coef).float(), mask), "loss": loss}
     return {name: stat.detach() for name, stat in stats.items()}
@@ -443,6 +478,9 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
     num_iterations = args.total_episodes // args.batch_size
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     kl_coef = checkpoint["kl_coef"] if checkpoint else args.kl_coef
+    # The RM's accuracy is measured on a pool that grows by the first POOL responses of each rollout: never empty of
+    # pairs of different gold, as a batch that collapsed onto one text is.
+    pool = checkpoint["rm_pool"] if checkpoint else torch.zeros(2, 0, device=device)
     start_iteration = checkpoint["iteration"] + 1 if checkpoint else 1
     torch.manual_seed(args.seed + 2)
     if checkpoint:
@@ -470,8 +508,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
             mean = masked_mean(advantages, mask)
             std = masked_mean((advantages - mean) ** 2, mask).sqrt()
             batch["advantages"] = (advantages - mean) / (std + 1e-8) * mask
-        else:  # GRPO: the group's statistics stand in for the critic; no value function is fitted
-            batch["advantages"] = group_advantages(rewards, mask, args.group_size)
+        else:  # a group baseline stands in for the critic; no value function is fitted
+            batch["advantages"] = group_advantages(rewards, mask, args.group_size, args.advantage)
             batch["returns"] = batch["values"]
 
         # UPDATE: K epochs of minibatch gradient descent, a new shuffle each epoch (core detail 6).
@@ -485,7 +523,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         if args.advantage == "gae":
             returns = batch["returns"][mask.bool()]
             losses["explained_variance"] = (1 - (returns - batch["values"][mask.bool()]).var() / returns.var()).item()
-        stats = response_stats(batch)
+        pool = torch.cat([pool, torch.stack([batch["scores"], batch["gold"]])[:, :POOL]], 1)
+        stats = response_stats(batch, pool)
         sps = (iteration - start_iteration + 1) * args.batch_size / (time.time() - start_time)
         scalars = {f"losses/{name}": value for name, value in losses.items()} | stats
         scalars |= {"rlhf/kl_coef": kl_coef, "charts/SPS": sps, "charts/episodic_length": stats["rlhf/response_length"]}
@@ -512,6 +551,7 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
             state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "kl_coef": kl_coef}
             state |= {"reference": reference.state_dict(), "reward_model": reward_model.state_dict()}
             state |= {"global_step": global_step, "iteration": iteration, "torch_rng_state": torch.get_rng_state()}
+            state["rm_pool"] = pool
             save_checkpoint(checkpoint_path, "ppo", args, **state)
         if stop:
             raise Stopped(f"stopped at step {global_step:,}; continue with --resume {checkpoint_path}")
@@ -593,7 +633,7 @@ def check_args(args):
             raise ValueError(f"{flag(name)} must be positive, got {value}")
         if not low <= value <= high:
             raise ValueError(f"{flag(name)} must be in [{low}, {high}], got {value}")
-    grpo = [("group_size", "batch_size")] if args.advantage == "grpo" else []
+    grpo = [] if args.advantage == "gae" else [("group_size", "batch_size")]
     for name, whole in [("n_head", "d_model"), ("minibatch_size", "batch_size"), *grpo]:
         if getattr(args, whole) % getattr(args, name):
             raise ValueError(f"{flag(name)} {getattr(args, name)} does not divide {flag(whole)} {getattr(args, whole)}")

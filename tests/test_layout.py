@@ -147,7 +147,7 @@ BUDGETS = {
     "ppo_continuous.py": {"lines": 590, "code_chars": 16_500, "train": 120},
     "ppo_atari.py": {"lines": 585, "code_chars": 17_500, "train": 120},
     "ppo_kl_penalty.py": {"lines": 615, "code_chars": 17_800, "train": 135},
-    "ppo_rlhf.py": {"lines": 635},
+    "ppo_rlhf.py": {"lines": 715},  # and issue 47 (PPO's successors, the hack by name) moved it by 80
 }
 
 
@@ -186,9 +186,8 @@ def test_the_weight_can_fail():
 
 # Not met yet (see the closing note of issue 42 for the figures reached); strict, so that each fails once it is met
 # and its marker must go. The ceilings below keep the scripts from growing past what they reached in the meantime.
-# ppo_rlhf.py's lines hold issue 40's GRPO arm, the reward model's accuracy and the new gold rule. The lines over the
-# moved budgets, and the code characters, hold --track with its offline fallback and the W&B run that --resume
-# continues (issue 48, about 30 lines a script), and Table 4's flags in ppo_continuous.py (issue 50, 32 lines).
+# The lines over the moved budgets, and the code characters, hold --track with its offline fallback and the W&B run
+# that --resume continues (issue 48, about 30 lines a script), and Table 4's flags in ppo_continuous.py (issue 50).
 REACHED = {
     ("ppo_continuous.py", "lines"): 617,
     ("ppo_continuous.py", "code_chars"): 19_150,
@@ -196,7 +195,6 @@ REACHED = {
     ("ppo_atari.py", "code_chars"): 19_275,
     ("ppo_kl_penalty.py", "lines"): 630,
     ("ppo_kl_penalty.py", "code_chars"): 19_490,
-    ("ppo_rlhf.py", "lines"): 673,
 }
 NOT_MET = set(REACHED)
 CASES = [

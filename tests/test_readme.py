@@ -88,7 +88,10 @@ def test_kl_flags_are_documented():
 def test_metrics_glossary_lists_every_scalar():
     rlhf = {
         f"rlhf/{name}"
-        for name in "score gold_score kl kl_coef entropy response_length eos_fraction well_formed rm_accuracy".split()
+        for name in (
+            "score gold_score kl kl_coef entropy response_length eos_fraction well_formed spam garbled rm_accuracy"
+            " rm_pairs"
+        ).split()
     }
     for tag in EXPECTED_SCALARS | {"losses/beta", "losses/kl", "charts/clip_coef"} | rlhf:
         assert f"`{tag}`" in README, tag

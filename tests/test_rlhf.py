@@ -164,7 +164,7 @@ def test_grpo_groups_share_a_prompt_and_fit_no_value_function():
     batch["returns"] = batch["values"] + 100.0  # a value loss would be large: GRPO's loss must not contain it
     stats = rlhf.ppo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), batch, args)
     assert stats["loss"].item() == pytest.approx(stats["policy_loss"].item())
-    assert stats["value_loss"].item() > 1000
+    assert "value_loss" not in stats, "no value function is fitted: no value loss is logged"
 
 
 def test_losses_are_means_over_the_masked_tokens_only():
@@ -385,3 +385,101 @@ def test_bad_flag_from_the_shell_is_one_line_and_exit_2(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "--gamma must be a finite number" in lines[0], proc.stderr
     assert not (tmp_path / "runs").exists()
+
+
+# PPO's successors on the same axes (issue 47): three group baselines, the hack by name, and what a stop leaves.
+def reference_group_baseline(returns, group_size, kind):
+    """Each response's advantage from its group, by a plain loop over the responses."""
+    out = np.zeros(len(returns))
+    for start in range(0, len(returns), group_size):
+        group = returns[start : start + group_size]
+        for i, r in enumerate(group):
+            others = np.delete(group, i)
+            if kind == "rloo":
+                out[start + i] = r - others.mean()
+            elif kind == "dr-grpo":
+                out[start + i] = r - group.mean()
+            else:
+                out[start + i] = (r - group.mean()) / (group.std(ddof=1) + 1e-8)
+    return out
+
+
+@pytest.mark.parametrize("kind", ["grpo", "dr-grpo", "rloo"])
+def test_group_baselines_match_a_loop_over_responses(kind):
+    rng = np.random.default_rng(7)
+    mask = masks_with_a_row_without_eos(rng, 8, 6)
+    rewards = rng.normal(size=(8, 6)) * mask
+    advantages = rlhf.group_advantages(*t64(rewards, mask), 4, kind).numpy()
+    expected = reference_group_baseline(rewards.sum(1), 4, kind)[:, None] * mask
+    np.testing.assert_allclose(advantages, expected, atol=1e-9)
+
+
+def test_rloo_is_dr_grpo_scaled_by_k_over_k_minus_1():
+    rewards, mask = torch.randn(12, 1, dtype=torch.float64), torch.ones(12, 1, dtype=torch.float64)
+    rloo = rlhf.group_advantages(rewards, mask, 4, "rloo")
+    assert torch.allclose(rloo, 4 / 3 * rlhf.group_advantages(rewards, mask, 4, "dr-grpo"))
+
+
+def tokens_of(*texts):
+    """Sequences [B, T] and response masks of texts "the NOUN ...": the prompt is "<bos> the NOUN"."""
+    rows = [[rlhf.BOS] + [rlhf.TOKEN[w] for w in text.split()] for text in texts]
+    width = max(map(len, rows))
+    tokens = torch.tensor([row + [rlhf.PAD] * (width - len(row)) for row in rows])
+    mask = torch.tensor([[1.0] * (len(row) - rlhf.PROMPT_LENGTH) + [0.0] * (width - len(row)) for row in rows])
+    return tokens, mask
+
+
+def test_each_response_has_one_form_and_spam_is_not_well_formed():
+    texts = [
+        "the film was good <eos>",
+        "the film was very awful <eos>",  # well formed, and as bad as spam by gold: the form tells them apart
+        "the film was good and the film was good <eos>",
+        "the film was was good <eos>",
+    ]
+    gold, forms = rlhf.gold_scores(*tokens_of(*texts))
+    assert gold.tolist() == [2.0, -6.0, -6.0, -6.0]
+    assert forms["well_formed"].tolist() == [1, 1, 0, 0]
+    assert forms["spam"].tolist() == [0, 0, 1, 0]
+    assert forms["garbled"].tolist() == [0, 0, 0, 1]
+
+
+def test_rm_accuracy_rests_on_the_pool_and_a_collapsed_batch_leaves_it_defined():
+    tokens, mask = tokens_of(*["the film was good and the film was good <eos>"] * 4)  # collapsed onto one spam text
+    gold, forms = rlhf.gold_scores(tokens, mask)
+    zeros = torch.zeros_like(mask)
+    batch = {"scores": torch.full((4,), 2.0), "gold": gold, "mask": mask, "logprobs": zeros, "ref_logprobs": zeros}
+    batch |= forms | {"entropy": zeros, "has_eos": torch.ones(4)}
+    assert math.isnan(rlhf.pairwise_accuracy(batch["scores"], batch["gold"]).item()), "the batch alone has no pair"
+    earlier = torch.tensor([[0.5, 1.0, 1.5], [9.0, 2.0, 4.0]])  # (RM score, gold) of earlier responses
+    pool = torch.cat([earlier, torch.stack([batch["scores"], batch["gold"]])], 1)
+    stats = rlhf.response_stats(batch, pool)
+    # pairs of different gold: 9 > 4 > 2 among the earlier three (3 pairs, the RM gets 1 right: 1.5 > 1.0), and each
+    # earlier one above the 4 spam copies (-6) (12 pairs, the RM gets none right: 2.0 beats them all)
+    assert stats["rlhf/rm_pairs"] == 15 and stats["rlhf/rm_accuracy"] == pytest.approx(1 / 15)
+    assert stats["rlhf/spam"] == 1 and stats["rlhf/well_formed"] == 0
+
+
+def test_a_stop_in_stage_1_says_that_nothing_is_saved(tmp_path):
+    with pytest.raises(rlhf.Stopped, match="stage 1, SFT at step 1; nothing is saved yet"):
+        rlhf.train(tiny_args(tmp_path), stop=[signal.SIGINT])
+    assert not list((tmp_path / "run").glob("*.pt"))
+
+
+def test_a_stop_in_stage_2_points_to_the_saved_stage_1(tmp_path):
+    class AfterStage1:  # the stop flag, raised once stage 1 is on disk
+        def __bool__(self):
+            return (tmp_path / "run" / "sft.pt").exists()
+
+    with pytest.raises(rlhf.Stopped, match="stage 2, reward model at step 1; stage 1 is saved: go on with") as e:
+        rlhf.train(tiny_args(tmp_path), stop=AfterStage1())
+    path = str(e.value).split("--sft-checkpoint ")[1]
+    assert rlhf.load_checkpoint(path, rlhf.Args(), "sft")[0]["stage"] == "sft"
+
+
+@pytest.mark.parametrize("advantage", ["dr-grpo", "rloo"])
+def test_group_baselines_run_from_the_command_line(advantage, tmp_path):
+    run_cli(SCRIPT, *TINY_FLAGS, "--advantage", advantage, "--group-size", "4", "--run-dir", "run", cwd=tmp_path)
+    scalars = tb_scalars(tmp_path / "run")
+    assert "losses/value_loss" not in scalars and "losses/policy_loss" in scalars
+    assert {"rlhf/spam", "rlhf/garbled", "rlhf/rm_pairs"} <= set(scalars)
+    assert all(math.isfinite(value) for _, value in scalars["rlhf/rm_accuracy"])
