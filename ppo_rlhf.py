@@ -76,6 +76,7 @@ class Args:
     value_model: Literal["reward-model", "policy-head"] = "reward-model"  # a critic started from the RM, or a head
     advantage: Literal["gae", "grpo", "dr-grpo", "rloo"] = "gae"  # gae: the critic and GAE; else a group baseline
     group_size: int = 8  # grpo, dr-grpo, rloo: responses sampled for each prompt, one group; divides --batch-size
+    dpo: bool = False  # stage 3 is DPO on the reward model's own training pairs, with beta --kl-coef, in place of PPO
     sft_checkpoint: str | None = None  # skip stage 1: take pi_SFT from this sft.pt
     reward_model_checkpoint: str | None = None  # skip stage 2: take the reward model from this reward_model.pt
     save_every: int = 25  # save the PPO checkpoint, and print samples, every this many iterations (and at the end)
@@ -371,11 +372,9 @@ def train_sft(args, run_dir, device, stop):
     return sft
 
 
-def train_reward_model(args, sft, run_dir, device, stop):
-    """Stage 2: a reward model, pi_SFT with its scalar head read at the EOS, fitted to pairs of pi_SFT's responses
-    ranked by the gold reward. It only ever sees pi_SFT's text: what it says of any other text is a guess."""
-    if args.reward_model_checkpoint:
-        return new_model(args, device, load_checkpoint(args.reward_model_checkpoint, args, "reward_model")[0]["model"])
+def preference_pairs(sft, args, device):
+    """Pairs of pi_SFT's responses ranked by the gold reward, ties dropped: (tokens, mask, chosen, rejected, n_train),
+    the first n_train pairs to learn from and a tenth held out. The same for the reward model and for DPO."""
     torch.manual_seed(args.seed + 1)
     n = 2 * args.rm_pairs  # sampled 512 at a time: larger batches run slower on a CPU
     samples = [generate(sft, min(512, n - i), args.response_length, args.temperature) for i in range(0, n, 512)]
@@ -389,6 +388,15 @@ def train_reward_model(args, sft, run_dir, device, stop):
     n_train = len(chosen) - len(chosen) // 10
     if n_train == len(chosen):
         raise Diverged(f"only {len(chosen)} pairs differ in gold reward: raise --sft-steps or --rm-pairs")
+    return tokens, mask, chosen, rejected, n_train
+
+
+def train_reward_model(args, sft, run_dir, device, stop):
+    """Stage 2: a reward model, pi_SFT with its scalar head read at the EOS, fitted to pairs of pi_SFT's responses
+    ranked by the gold reward. It only ever sees pi_SFT's text: what it says of any other text is a guess."""
+    if args.reward_model_checkpoint:
+        return new_model(args, device, load_checkpoint(args.reward_model_checkpoint, args, "reward_model")[0]["model"])
+    tokens, mask, chosen, rejected, n_train = preference_pairs(sft, args, device)
     order = torch.cat([torch.randperm(n_train, device=device) for _ in range(args.rm_epochs)])
     reward_model = copy.deepcopy(sft)
 
@@ -445,6 +453,42 @@ def response_stats(batch, pool):
     return {f"rlhf/{name}": value.item() for name, value in stats.items()}
 
 
+def gradient_step(agent, optimizer, loss, args):
+    optimizer.zero_grad()
+    loss.backward()
+    nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)  # core detail 11
+    optimizer.step()
+
+
+def sequence_logprobs(lm, tokens, mask, temperature):
+    """log pi(y|x) of each whole response [B]: the sum of its tokens' log-probs."""
+    return (response_dist(lm(tokens)[0], temperature).log_prob(tokens[:, PROMPT_LENGTH:]) * mask).sum(1)
+
+
+def dpo_pairs(reference, args, device):
+    """DPO's data: the reward model's training pairs, with pi_SFT's log-prob of each response, computed once."""
+    tokens, mask, chosen, rejected, n_train = preference_pairs(reference, args, device)
+    pairs = {}
+    for side, rows in (("chosen", chosen[:n_train]), ("rejected", rejected[:n_train])):
+        pairs |= {f"{side}_tokens": tokens[rows], f"{side}_mask": mask[rows]}
+        pairs[f"{side}_ref"] = sequence_logprobs(reference, tokens[rows], mask[rows], args.temperature).detach()
+    return pairs
+
+
+def dpo_update(agent, optimizer, mb, args):
+    """A minibatch step of DPO (Rafailov et al. 2023, eq. (7)): the reward model's own Bradley-Terry loss on its own
+    pairs, with beta log(pi(y|x) / pi_SFT(y|x)), the reward that pi* of compute_rewards' objective implies, in place of
+    the RM's score. DPO removes the reward model and the rollouts, and keeps the objective: E[r] - beta KL."""
+    implicit = {}
+    for side in ("chosen", "rejected"):
+        logprobs = sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"], args.temperature)
+        implicit[side] = args.kl_coef * (logprobs - mb[f"{side}_ref"])
+    loss = preference_loss(implicit["chosen"], implicit["rejected"])
+    gradient_step(agent, optimizer, loss, args)
+    accuracy = (implicit["chosen"] > implicit["rejected"]).float().mean()  # how often pi prefers the chosen
+    return {"loss": loss.detach(), "policy_loss": loss.detach(), "implicit_accuracy": accuracy}
+
+
 def ppo_update(agent, optimizer, mb, args):
     """A minibatch step on minus L^CLIP + c1 L^VF (eq. (9) without its entropy bonus), over the masked tokens only."""
     mask = mb["mask"]
@@ -457,10 +501,7 @@ def ppo_update(agent, optimizer, mb, args):
     v_loss = value_loss(newvalues[:, PROMPT_LENGTH - 1 : -1], mb["values"], mb["returns"], args.clip_coef, True, mask)
     # A group baseline has no critic to fit: its loss is L^CLIP alone, and it logs no value loss.
     loss = pg_loss + args.vf_coef * v_loss if args.advantage == "gae" else pg_loss
-    optimizer.zero_grad()
-    loss.backward()
-    nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)  # core detail 11
-    optimizer.step()
+    gradient_step(agent, optimizer, loss, args)
     # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[old, new].
     stats = {"policy_loss": pg_loss, "entropy": masked_mean(dist.entropy(), mask)}
     stats |= {"value_loss": v_loss} if args.advantage == "gae" else {}
@@ -472,7 +513,8 @@ def ppo_update(agent, optimizer, mb, args):
 def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer):
     """Stage 3: PPO-Clip, with the rewards of compute_rewards: the RM's score and the KL penalty to pi_SFT."""
     reference = sft.requires_grad_(False)  # pi_SFT, frozen
-    value_model = args.value_model if args.advantage == "gae" else "policy-head"  # GRPO trains no value function
+    # GRPO, Dr. GRPO, RLOO and DPO train no value function
+    value_model = args.value_model if args.advantage == "gae" and not args.dpo else "policy-head"
     agent = Agent(sft, reward_model.requires_grad_(False), value_model).requires_grad_(True)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)  # core detail 3
     num_iterations = args.total_episodes // args.batch_size
@@ -488,7 +530,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         optimizer.load_state_dict(checkpoint["optimizer"])
         torch.set_rng_state(checkpoint["torch_rng_state"])
         print(f"resuming {run_dir} at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})")
-    update = torch.compile(ppo_update) if args.compile else ppo_update
+    pairs = dpo_pairs(reference, args, device) if args.dpo else None
+    update = dpo_update if args.dpo else torch.compile(ppo_update) if args.compile else ppo_update
     table = "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items())
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
     start_time = time.time()
@@ -502,7 +545,11 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         # REWARDS AND ADVANTAGES: the KL penalty at every token and the score at the EOS, then GAE over tokens.
         mask = batch["mask"]
         rewards = compute_rewards(batch["scores"], batch["logprobs"], batch["ref_logprobs"], mask, kl_coef)
-        if args.advantage == "gae":
+        data = batch  # what the update learns from: the rollout, or DPO's pairs
+        if args.dpo:  # no advantages: a batch of the reward model's training pairs, drawn anew each iteration
+            rows = torch.randint(len(pairs["chosen_ref"]), (args.batch_size,), device=device)
+            data = {key: value[rows] for key, value in pairs.items()}
+        elif args.advantage == "gae":
             advantages, batch["returns"] = compute_gae(rewards, batch["values"], mask, args.gamma, args.gae_lambda)
             # Whitened once over the batch's tokens; Ziegler et al.'s code, like core detail 7, whitens each minibatch.
             mean = masked_mean(advantages, mask)
@@ -516,11 +563,11 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         update_stats = []
         for _ in range(args.update_epochs):
             for mb_inds in torch.randperm(args.batch_size, device=device).split(args.minibatch_size):
-                update_stats.append(update(agent, optimizer, {k: v[mb_inds] for k, v in batch.items()}, args))
+                update_stats.append(update(agent, optimizer, {k: v[mb_inds] for k, v in data.items()}, args))
 
         # LOGGING: the mean over every minibatch of the update, and what the rollout's responses show.
         losses = {name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]}
-        if args.advantage == "gae":
+        if args.advantage == "gae" and not args.dpo:  # a critic was fitted
             returns = batch["returns"][mask.bool()]
             losses["explained_variance"] = (1 - (returns - batch["values"][mask.bool()]).var() / returns.var()).item()
         pool = torch.cat([pool, torch.stack([batch["scores"], batch["gold"]])[:, :POOL]], 1)
@@ -537,7 +584,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
             f"{name} {stats[f'rlhf/{name}']:+.2f}" for name in ("score", "gold_score", "kl", "rm_accuracy")
         )
         text += f" | beta {kl_coef:.3g} | SPS {sps:.0f}"
-        report("stage 3, PPO: iteration", iteration, num_iterations, start_time, text, start_iteration - 1)
+        stage = "stage 3, DPO: iteration" if args.dpo else "stage 3, PPO: iteration"
+        report(stage, iteration, num_iterations, start_time, text, start_iteration - 1)
 
         # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
         if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
@@ -637,6 +685,8 @@ def check_args(args):
     for name, whole in [("n_head", "d_model"), ("minibatch_size", "batch_size"), *grpo]:
         if getattr(args, whole) % getattr(args, name):
             raise ValueError(f"{flag(name)} {getattr(args, name)} does not divide {flag(whole)} {getattr(args, whole)}")
+    if args.dpo and (args.adaptive_kl or args.kl_coef == 0 or args.advantage != "gae"):
+        raise ValueError("--dpo takes its beta from a positive, fixed --kl-coef, and has no --advantage")
     if args.adaptive_kl and args.kl_coef == 0:
         raise ValueError("--adaptive-kl needs a positive --kl-coef to start from: it scales beta, and 0 stays 0")
     if args.resume is None and args.total_episodes < args.batch_size:

@@ -349,6 +349,8 @@ BAD_INPUTS = [
     (["--adaptive-kl", "--kl-coef", "0"], "--adaptive-kl needs a positive --kl-coef"),
     (["--advantage", "grpo", "--group-size", "7"], "--group-size 7 does not divide --batch-size 64"),
     (["--advantage", "grpo", "--group-size", "1"], "--group-size must be in [2, inf]"),
+    (["--dpo", "--kl-coef", "0"], "--dpo takes its beta from a positive, fixed --kl-coef"),
+    (["--dpo", "--advantage", "rloo"], "--dpo takes its beta from a positive, fixed --kl-coef, and has no --advantage"),
     (["--value-model", "both"], "invalid choice"),
     (["--device", "tpu"], "--device tpu is not available"),
     (["--run-dir", "afile"], "is a file"),
@@ -483,3 +485,52 @@ def test_group_baselines_run_from_the_command_line(advantage, tmp_path):
     assert "losses/value_loss" not in scalars and "losses/policy_loss" in scalars
     assert {"rlhf/spam", "rlhf/garbled", "rlhf/rm_pairs"} <= set(scalars)
     assert all(math.isfinite(value) for _, value in scalars["rlhf/rm_accuracy"])
+
+
+def test_sequence_logprobs_sum_each_responses_token_log_probs():
+    torch.manual_seed(0)
+    lm = rlhf.TinyLM(16, 1, 2)
+    tokens, mask = tokens_of("the film was good <eos>", "the plot was not bad and the cast was fine <eos>")
+    logits = lm(tokens)[0].double()
+    expected = []
+    for i in range(2):
+        total = 0.0
+        for t in range(int(mask[i].sum())):  # position P - 1 + t predicts response token t
+            total += torch.log_softmax(logits[i, rlhf.PROMPT_LENGTH - 1 + t], -1)[tokens[i, rlhf.PROMPT_LENGTH + t]]
+        expected.append(total.item())
+    assert rlhf.sequence_logprobs(lm, tokens, mask, 1.0).tolist() == pytest.approx(expected, abs=1e-5)
+
+
+def test_dpo_is_the_reward_models_loss_on_the_implicit_reward():
+    """-log sigmoid(beta ((log pi - log pi_SFT)(y_w) - (log pi - log pi_SFT)(y_l))), by hand, on a policy that has
+    moved away from pi_SFT; and a step of it raises pi's preference for the chosen response."""
+    torch.manual_seed(1)
+    sft, moved = rlhf.TinyLM(16, 1, 2), rlhf.TinyLM(16, 1, 2)
+    agent = rlhf.Agent(moved, moved, "policy-head")
+    chosen, chosen_mask = tokens_of("the film was superb <eos>")
+    rejected, rejected_mask = tokens_of("the film was awful <eos>")
+    mb = {"chosen_tokens": chosen, "chosen_mask": chosen_mask, "rejected_tokens": rejected}
+    mb |= {"rejected_mask": rejected_mask}
+    mb |= {
+        f"{side}_ref": rlhf.sequence_logprobs(sft, mb[f"{side}_tokens"], mb[f"{side}_mask"], 1.0).detach()
+        for side in ("chosen", "rejected")
+    }
+    args = rlhf.Args(kl_coef=0.5)
+    margin = sum(
+        sign * (rlhf.sequence_logprobs(moved, mb[f"{side}_tokens"], mb[f"{side}_mask"], 1.0) - mb[f"{side}_ref"])
+        for sign, side in ((1, "chosen"), (-1, "rejected"))
+    ).item()
+    stats = rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)
+    assert stats["loss"].item() == pytest.approx(math.log(1 + math.exp(-0.5 * margin)), rel=1e-5)
+    before = stats["loss"].item()
+    rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.1), mb, args)
+    after = rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)["loss"].item()
+    assert after < before
+
+
+def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(tmp_path):
+    out = run_cli(SCRIPT, *TINY_FLAGS, "--dpo", "--kl-coef", "0.1", "--run-dir", "run", cwd=tmp_path).stdout
+    assert "stage 3, DPO: iteration 4/4" in out
+    scalars = tb_scalars(tmp_path / "run")
+    assert {"rlhf/score", "rlhf/gold_score", "rlhf/kl", "losses/implicit_accuracy"} <= set(scalars)
+    assert "losses/value_loss" not in scalars
