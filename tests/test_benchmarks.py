@@ -952,3 +952,22 @@ def test_throughput_humanoid_case_measures_ours_sb3_and_the_envs_with_table4(cap
     assert sps > 0 and first > 0
     throughput.run_worker("env", "Humanoid-v5", 64, "humanoid")  # the 32 envs of ppo_continuous.py, alone
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["sps"] > 0
+
+
+def test_best_of_n_keeps_the_rm_favourite_of_n_with_its_analytic_kl(tmp_path):
+    import best_of_n
+
+    assert best_of_n.analytic_kl(1) == 0 and best_of_n.analytic_kl(4) == pytest.approx(math.log(4) - 0.75)
+    rlhf_tiny = (
+        "--d-model 16 --n-layer 1 --n-head 2 --response-length 16 --sft-steps 60 --sft-learning-rate 0.01"
+        " --rm-pairs 128 --rm-epochs 1 --rm-batch-size 32 --total-episodes 16 --batch-size 16 --minibatch-size 8"
+    ).split()
+    cmd = [sys.executable, str(ROOT / "ppo_rlhf.py"), *rlhf_tiny, "--torch-threads", "1", "--run-dir", "run"]
+    subprocess.run(cmd, cwd=tmp_path, check=True, capture_output=True, timeout=300)
+    rows = best_of_n.best_of_n(tmp_path / "run", prompts=16, ns=[1, 2, 8])
+    assert [row[0] for row in rows] == [1, 2, 8] and [row[1] for row in rows] == [
+        best_of_n.analytic_kl(n) for n in (1, 2, 8)
+    ]
+    scores = [row[2] for row in rows]
+    assert scores[0] <= scores[1] <= scores[2], "the best of more responses (nested: the first N) scores no lower"
+    assert all(row[4] + row[5] + row[6] == pytest.approx(1.0) for row in rows), "each kept response has one form"

@@ -1,0 +1,77 @@
+"""Best-of-N from pi_SFT (Gao et al. 2022, arXiv:2210.10760, §2): the frontier of gold against KL that needs no
+optimizer. For each prompt, N responses of pi_SFT; the one the reward model scores highest is kept. Its KL to pi_SFT
+is known in closed form, log N - (N - 1) / N nats, so the curve sits on the same axes as PPO's and DPO's runs.
+
+    python benchmarks/best_of_n.py benchmarks/runs/rlhf/reviews__beta0.05__seed1    # stages 1-2 of that run's seed
+
+It reads the run's sft.pt and reward_model.pt (stages 1 and 2 depend only on the seed, so any arm of a seed serves)
+and writes benchmarks/results/rlhf/best_of_n/seed<N>.csv: N, the analytic KL, and the mean RM score, gold score and
+shares of well-formed, spam and garbled text of the kept responses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import load_script  # noqa: E402
+
+NS = [1, 2, 4, 8, 16, 32, 64]
+
+
+def analytic_kl(n):
+    """KL[best-of-n || pi_SFT] = log n - (n - 1) / n (Stiennon et al. 2020, Gao et al. 2022), in nats."""
+    return math.log(n) - (n - 1) / n
+
+
+def best_of_n(run_dir, prompts=256, ns=NS, seed=0):
+    """Rows (N, KL, score, gold, well_formed, spam, garbled) for each N in ns, over the same `prompts` prompts: the
+    best of the first N of max(ns) responses to each, as the run's reward model ranks them."""
+    rlhf = load_script("ppo_rlhf.py")
+    checkpoint, args = rlhf.load_checkpoint(str(Path(run_dir) / "sft.pt"), rlhf.Args(), "sft")
+    sft = rlhf.new_model(args, "cpu", checkpoint["model"])
+    rm_checkpoint = rlhf.load_checkpoint(str(Path(run_dir) / "reward_model.pt"), args, "reward_model")[0]
+    reward_model = rlhf.new_model(args, "cpu", rm_checkpoint["model"])
+    torch.manual_seed(seed)
+    tokens, mask = rlhf.generate(sft, prompts, args.response_length, args.temperature, max(ns))
+    with torch.no_grad():
+        has_eos = (tokens[:, rlhf.PROMPT_LENGTH :] == rlhf.EOS).any(1)
+        scores = torch.where(has_eos, reward_model.score(tokens, mask), args.no_eos_score).view(prompts, max(ns))
+    gold, forms = rlhf.gold_scores(tokens, mask)
+    rows = []
+    for n in ns:
+        best = scores[:, :n].argmax(1) + torch.arange(prompts) * max(ns)  # the kept response of each prompt
+        row = [n, analytic_kl(n), scores.flatten()[best].mean().item(), gold[best].mean().item()]
+        rows.append(row + [forms[name][best].mean().item() for name in ("well_formed", "spam", "garbled")])
+    return rows
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("run_dir", type=Path, help="a ppo_rlhf.py run directory with sft.pt and reward_model.pt")
+    parser.add_argument("--prompts", type=int, default=256, help="prompts, each with max N responses (default 256)")
+    parser.add_argument("--out", type=Path, help="default: benchmarks/results/rlhf/best_of_n/seed<N>.csv")
+    args = parser.parse_args()
+    rlhf = load_script("ppo_rlhf.py")
+    try:
+        seed = rlhf.load_checkpoint(str(args.run_dir / "sft.pt"), rlhf.Args(), "sft")[1].seed
+    except ValueError as e:
+        sys.exit(f"best_of_n.py: error: {e}")
+    out = args.out or ROOT / "benchmarks" / "results" / "rlhf" / "best_of_n" / f"seed{seed}.csv"
+    rows = best_of_n(args.run_dir, args.prompts, seed=seed)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    lines = ["n,kl,score,gold_score,well_formed,spam,garbled"] + [",".join(f"{x:.6g}" for x in row) for row in rows]
+    out.write_text("\n".join(lines) + "\n")
+    for row in rows:
+        print(f"N {row[0]:>3}: KL {row[1]:.2f} | RM score {row[2]:+.2f} | gold {row[3]:+.2f} | spam {row[5]:.2f}")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
