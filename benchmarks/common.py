@@ -7,6 +7,7 @@ import os
 import platform
 import signal
 import statistics
+import subprocess
 import sys
 from dataclasses import asdict
 from pathlib import Path
@@ -23,6 +24,17 @@ def load_script(name):
     sys.modules[spec.name] = module  # dataclasses look their module up here
     spec.loader.exec_module(module)
     return module
+
+
+def git(*args):
+    return subprocess.run(["git", *args], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+
+
+def commit(paths=(), mark=""):
+    """The short hash of HEAD ('unknown' outside git), and `mark` after it when a file of `paths` (git pathspecs)
+    differs from it: the one answer to "which commit" that every results file records."""
+    rev = git("rev-parse", "--short", "HEAD") or "unknown"
+    return rev + (mark if paths and git("status", "--porcelain", "--", *paths) else "")
 
 
 def versions(packages=("torch", "numpy", "gymnasium", "mujoco")):

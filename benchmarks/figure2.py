@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import argparse
 import csv
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import load_script, machine, versions  # noqa: E402
+from common import commit, load_script, machine, versions  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "results" / "figure2"
 POLICY = ("actor_mean", "actor_logstd")  # the parameters that interpolate; the value network does not enter
@@ -145,10 +144,7 @@ def main():
             f"# command: python benchmarks/figure2.py --seed {args.seed} --max-alpha {args.max_alpha}"
             f" --points {args.points}\n"
         )
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
-        ).stdout.strip()
-        f.write(f"# commit: {commit or 'unknown'}\n# versions: {versions()}\n# machine: {machine()}\n")
+        f.write(f"# commit: {commit()}\n# versions: {versions()}\n# machine: {machine()}\n")
         writer = csv.writer(f)
         writer.writerow(["alpha", "L_CPI", "clipped_term", "L_CLIP", "mean_KL"])
         writer.writerows(rows)

@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import (  # noqa: E402
     RLHF_STATS,
     UPDATE_STATS,
+    commit,
     load_script,
     machine,
     read_rlhf,
@@ -190,14 +191,9 @@ def find_equivalent(job, results_root):
     return None
 
 
-def git(*args):
-    return subprocess.run(["git", *args], capture_output=True, text=True, cwd=ROOT).stdout.strip()
-
-
 def commit_of(script):
     """The commit the script is at, marked when the script differs from it."""
-    rev = git("rev-parse", "--short", "HEAD") or "unknown"
-    return rev + (" (script modified)" if git("status", "--porcelain", "--", script) else "")
+    return commit([script], " (script modified)")
 
 
 def attempt_line(started, commit, elapsed, returncode, resumed):

@@ -42,7 +42,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import load_script, machine, replace_between, versions  # noqa: E402
+from common import commit, load_script, machine, replace_between, versions  # noqa: E402
 
 # A suite: its env, our scripts, and their peers.
 # Each run also measures the env alone.
@@ -281,16 +281,6 @@ def measure(case, env_id, steps, suite):
     return result["sps"], result["first_iteration_s"]
 
 
-def commit():
-    rev = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
-    ).stdout.strip()
-    dirty = subprocess.run(
-        ["git", "status", "--porcelain", "--", "*.py"], capture_output=True, text=True, cwd=ROOT
-    ).stdout.strip()
-    return rev + (" (with uncommitted changes)" if dirty else "")
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--suite", choices=["all", *sorted(SUITES)], default="all")
@@ -396,7 +386,7 @@ def measure_suite(name, steps, repeats):
         "- The other process sharing the machine during the run, if any, is not controlled:"
         f" compare ratios, not absolute figures (load average at the start: {load_at_start:.1f}).",
         f"- Command: `{command.strip()}`",
-        f"- Commit: {commit()}; date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
+        f"- Commit: {commit(['*.py'], ' (with uncommitted changes)')}; date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
         f"- Versions: {versions(('torch', 'numpy', 'gymnasium', 'mujoco', 'ale-py', 'stable-baselines3'))}",
         f"- Machine: {machine()}",
     ]
