@@ -52,6 +52,22 @@ TINY = {
     },
 }
 
+# The TensorBoard scalars every gym script logs, under the names CleanRL and most tools read.
+EXPECTED_SCALARS = {
+    "charts/episodic_return",
+    "charts/episodic_length",
+    "charts/learning_rate",
+    "charts/SPS",
+    "losses/policy_loss",
+    "losses/value_loss",
+    "losses/entropy",
+    "losses/approx_kl",
+    "losses/old_approx_kl",
+    "losses/clipfrac",
+    "losses/explained_variance",
+    "losses/loss",
+}
+
 
 def needs_env(script):
     """Skip a check of gymnasium envs, episodes or videos for a script that has none, saying why."""

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import (
+    EXPECTED_SCALARS,
     ONE_THREAD,
     ROOT,
     SCRIPTS,
@@ -23,21 +24,6 @@ from conftest import (
     tb_scalars,
     train_tiny,
 )
-
-EXPECTED_SCALARS = {
-    "charts/episodic_return",
-    "charts/episodic_length",
-    "charts/learning_rate",
-    "charts/SPS",
-    "losses/policy_loss",
-    "losses/value_loss",
-    "losses/entropy",
-    "losses/approx_kl",
-    "losses/old_approx_kl",
-    "losses/clipfrac",
-    "losses/explained_variance",
-    "losses/loss",
-}
 
 
 def weights(run_dir):

@@ -5,21 +5,12 @@ import re
 import sys
 
 import pytest
-from conftest import ROOT, SCRIPTS, load_script
-from test_cli import EXPECTED_SCALARS
+from conftest import EXPECTED_SCALARS, ROOT, SCRIPTS, load_script
 
 README = (ROOT / "README.md").read_text()
-DETAIL_MENTION = re.compile(r"(?i)\b(core|continuous|atari) details? (\d+(?:\s*(?:[-,/]|and)\s*\d+)*)")
-
-
-def mentioned_details(line):
-    """The (family, number) pairs a source line's comment cites, e.g. 'continuous details 8-9'."""
-    found = set()
-    for family, spec in DETAIL_MENTION.findall(line):
-        for part in re.split(r"\s*(?:[,/]|and)\s*", spec):
-            lo, _, hi = part.partition("-")
-            found |= {(family.lower(), n) for n in range(int(lo), int(hi or lo) + 1)}
-    return found
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import details  # noqa: E402
+from details import cited_details  # noqa: E402
 
 
 def test_readme_is_short():
@@ -43,19 +34,16 @@ def test_every_detail_links_to_a_line_that_cites_it():
             f"README's link text {link_text!r} does not say the line it goes to, {script}#L{line}"
         )
         source = (ROOT / script).read_text().splitlines()
-        cited_at = [i + 1 for i, text in enumerate(source) if (family, int(number)) in mentioned_details(text)]
-        assert (family, int(number)) in mentioned_details(source[int(line) - 1]), (
+        cited_at = [i + 1 for i, text in enumerate(source) if (family, int(number)) in cited_details(text)]
+        assert (family, int(number)) in cited_details(source[int(line) - 1]), (
             f"README links {family} detail {number} to {script} line {line}, but it is cited at lines {cited_at}"
         )
 
 
 def test_details_table_is_generated_from_the_scripts():
     # `python benchmarks/report.py` regenerates it, so that a reformat of a script moves its links too.
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import report
-
-    assert report.details_block() in README, "run python benchmarks/report.py"
-    assert report.cited_details("# Continuous details 8-9 and core detail 3") == {
+    assert details.details_block() in README, "run python benchmarks/report.py"
+    assert cited_details("# Continuous details 8-9 and core detail 3") == {
         ("continuous", 8),
         ("continuous", 9),
         ("core", 3),
