@@ -1,5 +1,6 @@
 """Shared fixtures: every check written once and run over every ppo_*.py script that exists."""
 
+import dataclasses
 import functools
 import importlib.util
 import os
@@ -162,3 +163,13 @@ def signal_at_checkpoint(proc, checkpoint, sig, wait):
         if proc.poll() is None:
             proc.terminate()
             proc.communicate(timeout=120)
+
+
+def rlhf_tiny_args(tmp_path, name="run", **overrides):
+    """The Args of ppo_rlhf.py's TINY run, for its train() in the test's process."""
+    rlhf = load_script("ppo_rlhf.py")
+    flags = TINY["ppo_rlhf.py"]["tiny"]
+    names = [flag[2:].replace("-", "_") for flag in flags[::2]]
+    types = {f.name: type(getattr(rlhf.Args(), f.name)) for f in dataclasses.fields(rlhf.Args)}
+    values = {name: types[name](value) for name, value in zip(names, flags[1::2], strict=True)}
+    return rlhf.Args(**{**values, "torch_threads": 1, "run_dir": str(tmp_path / name), **overrides})

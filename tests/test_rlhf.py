@@ -1,7 +1,6 @@
 """ppo_rlhf.py: its math against plain loops and hand computations, its language, and its real command line on a tiny
 budget (stop and resume, determinism, cached stages, bad input)."""
 
-import dataclasses
 import math
 import signal
 import subprocess
@@ -10,27 +9,18 @@ import sys
 import numpy as np
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli, signal_at_checkpoint, tb_scalars
+from conftest import ONE_THREAD, ROOT, TINY, load_script, rlhf_tiny_args, run_cli, signal_at_checkpoint, tb_scalars
 
 SCRIPT = "ppo_rlhf.py"
 rlhf = load_script(SCRIPT)
 TINY_FLAGS = TINY[SCRIPT]["tiny"]
 
 
-def tiny_args(tmp_path, name="run", **overrides):
-    """The Args of TINY's run, for train() in this process."""
-    flags = dict(zip(TINY_FLAGS[::2], TINY_FLAGS[1::2], strict=True))
-    types = {f.name: type(getattr(rlhf.Args(), f.name)) for f in dataclasses.fields(rlhf.Args)}
-    values = {k[2:].replace("-", "_"): v for k, v in flags.items()}
-    values = {k: types[k](v) for k, v in values.items()}
-    return rlhf.Args(**{**values, "torch_threads": 1, "run_dir": str(tmp_path / name), **overrides})
-
-
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     """One tiny run of all three stages in this process, shared by the tests that only read it."""
     path = tmp_path_factory.mktemp("rlhf")
-    agent, run_dir = rlhf.train(tiny_args(path))
+    agent, run_dir = rlhf.train(rlhf_tiny_args(path))
     return agent, path / "run"
 
 
@@ -275,16 +265,16 @@ def test_train_restores_signal_handlers_and_threads_even_when_it_fails(tmp_path,
     threads = torch.get_num_threads()
     monkeypatch.setattr(rlhf, "clipped_surrogate_loss", lambda *a, **k: torch.tensor(float("nan"), requires_grad=True))
     with pytest.raises(rlhf.Diverged, match="not finite after iteration 1; try a smaller --learning-rate"):
-        rlhf.train(tiny_args(tmp_path, torch_threads=threads + 1))
+        rlhf.train(rlhf_tiny_args(tmp_path, torch_threads=threads + 1))
     assert {sig: signal.getsignal(sig) for sig in handlers} == handlers and torch.get_num_threads() == threads
 
 
 def test_same_seed_same_run_and_cached_stages_change_nothing(tiny_run, tmp_path):
     agent, run_dir = tiny_run
-    again, _ = rlhf.train(tiny_args(tmp_path, "again"))
+    again, _ = rlhf.train(rlhf_tiny_args(tmp_path, "again"))
     stages = {"sft_checkpoint": str(run_dir / "sft.pt"), "reward_model_checkpoint": str(run_dir / "reward_model.pt")}
-    cached, _ = rlhf.train(tiny_args(tmp_path, "cached", **stages))
-    other, _ = rlhf.train(tiny_args(tmp_path, "other", seed=2))
+    cached, _ = rlhf.train(rlhf_tiny_args(tmp_path, "cached", **stages))
+    other, _ = rlhf.train(rlhf_tiny_args(tmp_path, "other", seed=2))
     for name, weight in agent.state_dict().items():
         assert torch.equal(weight, again.state_dict()[name]), name
         assert torch.equal(weight, cached.state_dict()[name]), name
@@ -463,7 +453,7 @@ def test_rm_accuracy_rests_on_the_pool_and_a_collapsed_batch_leaves_it_defined()
 
 def test_a_stop_in_stage_1_says_that_nothing_is_saved(tmp_path):
     with pytest.raises(rlhf.Stopped, match="stage 1, SFT at step 1; nothing is saved yet"):
-        rlhf.train(tiny_args(tmp_path), stop=[signal.SIGINT])
+        rlhf.train(rlhf_tiny_args(tmp_path), stop=[signal.SIGINT])
     assert not list((tmp_path / "run").glob("*.pt"))
 
 
@@ -473,7 +463,7 @@ def test_a_stop_in_stage_2_points_to_the_saved_stage_1(tmp_path):
             return (tmp_path / "run" / "sft.pt").exists()
 
     with pytest.raises(rlhf.Stopped, match="stage 2, reward model at step 1; stage 1 is saved: go on with") as e:
-        rlhf.train(tiny_args(tmp_path), stop=AfterStage1())
+        rlhf.train(rlhf_tiny_args(tmp_path), stop=AfterStage1())
     path = str(e.value).split("--sft-checkpoint ")[1]
     assert rlhf.load_checkpoint(path, rlhf.Args(), "sft")[0]["stage"] == "sft"
 

@@ -5,8 +5,7 @@ the mask that keeps the tokens after an EOS out of every loss."""
 
 import pytest
 import torch
-from conftest import load_script
-from test_rlhf import tiny_args
+from conftest import load_script, rlhf_tiny_args
 
 rlhf = load_script("ppo_rlhf.py")
 
@@ -15,7 +14,7 @@ rlhf = load_script("ppo_rlhf.py")
 def recorded(tmp_path_factory):
     # Responses of at most 6 tokens, so that some never reach their EOS; a beta that a dropped coefficient would show.
     path = tmp_path_factory.mktemp("rlhf")
-    args = tiny_args(path, response_length=6, kl_coef=0.3, no_eos_score=-2.5)
+    args = rlhf_tiny_args(path, response_length=6, kl_coef=0.3, no_eos_score=-2.5)
     run_dir = path / "run"
     calls = {"rollout": [], "compute_rewards": [], "compute_gae": [], "clipped_surrogate_loss": [], "value_loss": []}
     patch = pytest.MonkeyPatch()
