@@ -524,13 +524,14 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
     # pairs of different gold, as a batch that collapsed onto one text is.
     pool = checkpoint["rm_pool"] if checkpoint else torch.zeros(2, 0, device=device)
     start_iteration = checkpoint["iteration"] + 1 if checkpoint else 1
+    # DPO's pairs are stage 2's, drawn with stage 2's seed: before stage 3's random state is set or restored
+    pairs = dpo_pairs(reference, args, device) if args.dpo else None
     torch.manual_seed(args.seed + 2)
     if checkpoint:
         agent.load_state_dict(checkpoint["agent"])
         optimizer.load_state_dict(checkpoint["optimizer"])
         torch.set_rng_state(checkpoint["torch_rng_state"])
         print(f"resuming {run_dir} at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})")
-    pairs = dpo_pairs(reference, args, device) if args.dpo else None
     update = dpo_update if args.dpo else torch.compile(ppo_update) if args.compile else ppo_update
     table = "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items())
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)

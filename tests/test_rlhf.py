@@ -524,3 +524,22 @@ def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(tmp_path):
     scalars = tb_scalars(tmp_path / "run")
     assert {"rlhf/score", "rlhf/gold_score", "rlhf/kl", "losses/implicit_accuracy"} <= set(scalars)
     assert "losses/value_loss" not in scalars
+
+
+def test_a_stopped_dpo_run_resumes_bit_for_bit(tmp_path):
+    """DPO's pairs are drawn with stage 2's seed before stage 3's random state is set or restored: a run stopped at its
+    first checkpoint and resumed ends where an uninterrupted one does."""
+    flags = {"dpo": True, "kl_coef": 0.1, "save_every": 2}
+    whole, _ = rlhf.train(rlhf_tiny_args(tmp_path, "whole", **flags))
+
+    class AtFirstCheckpoint:
+        def __bool__(self):
+            return (tmp_path / "cut" / "checkpoint.pt").exists()
+
+    with pytest.raises(rlhf.Stopped):
+        rlhf.train(rlhf_tiny_args(tmp_path, "cut", **flags), AtFirstCheckpoint())
+    assert torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)["iteration"] == 2
+    resumed, _ = rlhf.train(rlhf_tiny_args(tmp_path, "cut", resume=str(tmp_path / "cut" / "checkpoint.pt"), **flags))
+    assert all(
+        torch.equal(a, b) for a, b in zip(whole.state_dict().values(), resumed.state_dict().values(), strict=True)
+    )
