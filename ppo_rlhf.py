@@ -511,7 +511,8 @@ def ppo_update(agent, optimizer, mb, args):
 
 
 def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer):
-    """Stage 3: PPO-Clip, with the rewards of compute_rewards: the RM's score and the KL penalty to pi_SFT."""
+    """Stage 3: PPO-Clip, with the rewards of compute_rewards: the RM's score and the KL penalty to pi_SFT; or, with
+    --dpo, DPO's updates on the RM's pairs, each iteration's rollout then only measuring pi."""
     reference = sft.requires_grad_(False)  # pi_SFT, frozen
     # GRPO, Dr. GRPO, RLOO and DPO train no value function
     value_model = args.value_model if args.advantage == "gae" and not args.dpo else "policy-head"

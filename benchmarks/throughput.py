@@ -128,7 +128,9 @@ def rollout_ends():
     return Ends()
 
 
-def measure_sb3_ppo_mujoco(env_id, steps, threads=None, n_envs=1, n_steps=2048, batch_size=64, n_epochs=10):
+def measure_sb3_ppo_mujoco(
+    env_id, steps, threads=None, n_envs=1, n_steps=2048, batch_size=64, n_epochs=10, anneal_lr=True, log_std_init=0.0
+):
     import gymnasium as gym
     import torch
     from stable_baselines3 import PPO
@@ -138,7 +140,6 @@ def measure_sb3_ppo_mujoco(env_id, steps, threads=None, n_envs=1, n_steps=2048, 
     # cores the intra-op threads slow 64x64 MLPs down, so we also measure it with 1 thread, as ours.
     if threads is not None:
         torch.set_num_threads(threads)
-    table4 = n_envs > 1  # the humanoid's settings: a constant lr and the initial log std of Table 4's schedule
     envs = VecNormalize(DummyVecEnv([lambda: gym.make(env_id)] * n_envs), gamma=0.99)
     model = PPO(
         "MlpPolicy",
@@ -146,7 +147,7 @@ def measure_sb3_ppo_mujoco(env_id, steps, threads=None, n_envs=1, n_steps=2048, 
         n_steps=n_steps,
         batch_size=batch_size,
         n_epochs=n_epochs,
-        learning_rate=3e-4 if table4 else lambda progress_remaining: 3e-4 * progress_remaining,
+        learning_rate=(lambda progress_remaining: 3e-4 * progress_remaining) if anneal_lr else 3e-4,
         gamma=0.99,
         gae_lambda=0.95,
         clip_range=0.2,
@@ -154,7 +155,7 @@ def measure_sb3_ppo_mujoco(env_id, steps, threads=None, n_envs=1, n_steps=2048, 
         vf_coef=0.5,
         max_grad_norm=0.5,
         policy_kwargs=dict(
-            net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=torch.nn.Tanh, log_std_init=-0.7 if table4 else 0.0
+            net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=torch.nn.Tanh, log_std_init=log_std_init
         ),
         device="cpu",
         seed=1,
@@ -250,7 +251,8 @@ def run_worker(case, env_id, steps, suite):
     if case.startswith("ppo_"):
         sps = measure_ours(case, env_id, steps, suite_flags)
     elif case.startswith("sb3_ppo_humanoid"):
-        table4 = dict(n_envs=32, n_steps=512, batch_size=4096, n_epochs=15)
+        # Table 4: SB3 has no KL-adapted lr nor log std schedule: a constant lr, and the schedule's first log std
+        table4 = dict(n_envs=32, n_steps=512, batch_size=4096, n_epochs=15, anneal_lr=False, log_std_init=-0.7)
         sps = measure_sb3_ppo_mujoco(env_id, steps, 1 if case.endswith("1thread") else None, **table4)
     elif case == "env" and suite_flags:
         sps = measure_vector_env(env_id, steps, suite_flags)
