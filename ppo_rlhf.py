@@ -193,7 +193,7 @@ MODIFIERS = {"very": 2, "not": -1}
 WORDS = ["<pad>", "<bos>", "<eos>", "the", "was", "and", *MODIFIERS, *NOUNS, *VALENCE]
 PAD, BOS, EOS = range(3)
 TOKEN = {word: i for i, word in enumerate(WORDS)}
-PROMPT_LENGTH = 3  # "<bos> the NOUN": a response goes on from there
+PROMPT_LENGTH = 6  # "<bos> the NOUN was ADJ and": a review's first clause, which a response goes on from
 BLOCK_SIZE = 32  # the longest sequence, prompt and response, that the networks take
 POOL = 16  # responses of each rollout added to the pool on which the RM's accuracy is measured
 GOLD_PENALTY = -6.0  # the gold score of text a reader rejects, garbled or spam: that of one "very awful" clause
@@ -256,11 +256,13 @@ def gold_scores(tokens, mask):
 
 @torch.no_grad()
 def generate(lm, n, response_length, temperature, group_size=1):
-    """n prompts "<bos> the NOUN", each group_size times, and lm's responses: sequences [n group_size, P + L] with PAD
-    after the first EOS, and their mask, 1 on a response up to its first EOS included (on all of it if it has none)."""
-    nouns = torch.randint(len(NOUNS), (n, 1), device=lm.lm_head.weight.device) + TOKEN[NOUNS[0]]
-    nouns = nouns.repeat_interleave(group_size, 0)
-    tokens = torch.cat([torch.full_like(nouns, BOS), torch.full_like(nouns, TOKEN["the"]), nouns], 1)
+    """n prompts "<bos> the NOUN was ADJ and", each group_size times, and lm's responses: sequences [n group_size,
+    P + L] with PAD after the first EOS, and their mask, 1 on a response up to its first EOS included (on all of it if
+    it has none). Gold counts the prompt's clause: a response's baseline should know its prompt (a critic, a group)."""
+    prompts = torch.tensor([[BOS, TOKEN["the"], 0, TOKEN["was"], 0, TOKEN["and"]]] * n, device=lm.lm_head.weight.device)
+    prompts[:, 2] = torch.randint(len(NOUNS), (n,)) + TOKEN[NOUNS[0]]  # the NOUN
+    prompts[:, 4] = torch.randint(len(VALENCE), (n,)) + TOKEN["awful"]  # was ADJ
+    tokens = prompts.repeat_interleave(group_size, 0)
     for _ in range(response_length):
         logits = lm(tokens)[0][:, -1] / temperature
         tokens = torch.cat([tokens, torch.multinomial(logits.softmax(-1), 1)], 1)
@@ -373,16 +375,16 @@ def train_sft(args, run_dir, device, stop):
 
 
 def preference_pairs(sft, args, device):
-    """Pairs of pi_SFT's responses ranked by the gold reward, ties dropped: (tokens, mask, chosen, rejected, n_train),
-    the first n_train pairs to learn from and a tenth held out. The same for the reward model and for DPO."""
+    """Pairs of pi_SFT's responses to one prompt ranked by the gold reward, ties dropped: (tokens, mask, chosen,
+    rejected, n_train), the first n_train pairs to learn from and a tenth held out. The same for the RM and for DPO."""
     torch.manual_seed(args.seed + 1)
-    n = 2 * args.rm_pairs  # sampled 512 at a time: larger batches run slower on a CPU
-    samples = [generate(sft, min(512, n - i), args.response_length, args.temperature) for i in range(0, n, 512)]
+    n = args.rm_pairs  # sampled 256 prompts (512 responses) at a time: larger batches run slower on a CPU
+    samples = [generate(sft, min(256, n - i), args.response_length, args.temperature, 2) for i in range(0, n, 256)]
     tokens, mask = map(torch.cat, zip(*samples, strict=True))
     gold, _ = gold_scores(tokens, mask)
-    # Sample i against sample i + rm_pairs: the gold reward chooses, and ties are dropped.
-    a = torch.arange(args.rm_pairs, device=device)[gold[: args.rm_pairs] != gold[args.rm_pairs :]]
-    b = a + args.rm_pairs
+    # The two responses to a prompt, rows 2i and 2i + 1: the gold reward chooses, and ties are dropped.
+    a = torch.arange(0, 2 * n, 2, device=device)[gold[0::2] != gold[1::2]]
+    b = a + 1
     chosen = torch.where(gold[a] > gold[b], a, b)
     rejected = torch.where(gold[a] > gold[b], b, a)
     n_train = len(chosen) - len(chosen) // 10
@@ -448,8 +450,7 @@ def response_stats(batch, pool):
     stats |= {name: batch[name].mean() for name in ("well_formed", "spam", "garbled")}
     stats["entropy"] = masked_mean(batch["entropy"], mask)
     stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
-    stats["rm_accuracy"] = pairwise_accuracy(*pool)
-    stats["rm_pairs"] = (pool[1][:, None] > pool[1][None, :]).sum()
+    stats |= {"rm_accuracy": pairwise_accuracy(*pool), "rm_pairs": (pool[1][:, None] > pool[1][None, :]).sum()}
     return {f"rlhf/{name}": value.item() for name, value in stats.items()}
 
 
@@ -599,9 +600,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
                 print(f"  score {batch['scores'][i]:+.2f} | gold {batch['gold'][i]:+3.0f} | {text}")
             writer.flush()  # the curve on disk reaches at least the checkpoint's step
             state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "kl_coef": kl_coef}
-            state |= {"reference": reference.state_dict(), "reward_model": reward_model.state_dict()}
+            state |= {"reference": reference.state_dict(), "reward_model": reward_model.state_dict(), "rm_pool": pool}
             state |= {"global_step": global_step, "iteration": iteration, "torch_rng_state": torch.get_rng_state()}
-            state["rm_pool"] = pool
             save_checkpoint(checkpoint_path, "ppo", args, **state)
         if stop:
             raise Stopped(f"stopped at step {global_step:,}; continue with --resume {checkpoint_path}")
@@ -665,8 +665,8 @@ def load_checkpoint(path, args, stage="ppo"):
 
 # Every number must be finite and positive, except these, which have ranges of their own.
 RANGES = {"seed": (-math.inf, math.inf), "no_eos_score": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
-# The shortest review's response, "was ADJ <eos>", is 3 tokens; 100 comparisons hold out 10 to measure the RM with.
-RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "response_length": (3, BLOCK_SIZE - PROMPT_LENGTH)}
+# The shortest response, "the NOUN was ADJ <eos>", is 5 tokens; 100 comparisons hold out 10 to measure the RM with.
+RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "response_length": (5, BLOCK_SIZE - PROMPT_LENGTH)}
 RANGES |= {"rm_pairs": (100, math.inf), "group_size": (2, math.inf)}
 
 

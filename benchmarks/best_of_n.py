@@ -6,7 +6,8 @@ is known in closed form, log N - (N - 1) / N nats, so the curve sits on the same
 
 It reads the run's sft.pt and reward_model.pt (stages 1 and 2 depend only on the seed, so any arm of a seed serves)
 and writes benchmarks/results/rlhf/best_of_n/seed<N>.csv: N, the analytic KL, and the mean RM score, gold score and
-shares of well-formed, spam and garbled text of the kept responses.
+shares of well-formed, spam and garbled text of the kept responses, and how often the RM ranks pairs of them (of
+different gold) as gold does; after '# key: value' lines that say where and how it was made.
 """
 
 from __future__ import annotations
@@ -14,13 +15,14 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import time
 from pathlib import Path
 
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import load_script  # noqa: E402
+from common import commit, load_script, machine, versions  # noqa: E402
 
 NS = [1, 2, 4, 8, 16, 32, 64]
 
@@ -31,8 +33,8 @@ def analytic_kl(n):
 
 
 def best_of_n(run_dir, prompts=256, ns=NS, seed=0):
-    """Rows (N, KL, score, gold, well_formed, spam, garbled) for each N in ns, over the same `prompts` prompts: the
-    best of the first N of max(ns) responses to each, as the run's reward model ranks them."""
+    """Rows (N, KL, score, gold, well_formed, spam, garbled, rm_accuracy) for each N in ns, over the same `prompts`
+    prompts: the best of the first N of max(ns) responses to each, as the run's reward model ranks them."""
     rlhf = load_script("ppo_rlhf.py")
     checkpoint, args = rlhf.load_checkpoint(str(Path(run_dir) / "sft.pt"), rlhf.Args(), "sft")
     sft = rlhf.new_model(args, "cpu", checkpoint["model"])
@@ -48,7 +50,8 @@ def best_of_n(run_dir, prompts=256, ns=NS, seed=0):
     for n in ns:
         best = scores[:, :n].argmax(1) + torch.arange(prompts) * max(ns)  # the kept response of each prompt
         row = [n, analytic_kl(n), scores.flatten()[best].mean().item(), gold[best].mean().item()]
-        rows.append(row + [forms[name][best].mean().item() for name in ("well_formed", "spam", "garbled")])
+        row += [forms[name][best].mean().item() for name in ("well_formed", "spam", "garbled")]
+        rows.append(row + [rlhf.pairwise_accuracy(scores.flatten()[best], gold[best]).item()])
     return rows
 
 
@@ -64,10 +67,19 @@ def main():
     except ValueError as e:
         sys.exit(f"best_of_n.py: error: {e}")
     out = args.out or ROOT / "benchmarks" / "results" / "rlhf" / "best_of_n" / f"seed{seed}.csv"
+    start = time.time()
     rows = best_of_n(args.run_dir, args.prompts, seed=seed)
+    header = {"command": " ".join(["python", *sys.argv]), "commit": commit(["ppo_rlhf.py"], " (script modified)")}
+    header |= {
+        "versions": versions(("torch", "numpy")),
+        "machine": machine(),
+        "wall_time_s": f"{time.time() - start:.0f}",
+    }
+    lines = [f"# {key}: {value}" for key, value in header.items()] + [
+        "n,kl,score,gold_score,well_formed,spam,garbled,rm_accuracy"
+    ]
     out.parent.mkdir(parents=True, exist_ok=True)
-    lines = ["n,kl,score,gold_score,well_formed,spam,garbled"] + [",".join(f"{x:.6g}" for x in row) for row in rows]
-    out.write_text("\n".join(lines) + "\n")
+    out.write_text("\n".join(lines + [",".join(f"{x:.6g}" for x in row) for row in rows]) + "\n")
     for row in rows:
         print(f"N {row[0]:>3}: KL {row[1]:.2f} | RM score {row[2]:+.2f} | gold {row[3]:+.2f} | spam {row[5]:.2f}")
     print(f"wrote {out}")

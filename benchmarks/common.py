@@ -104,6 +104,9 @@ RLHF_STATS = (
     "eos_fraction",
     "well_formed",
     "rm_accuracy",
+    "spam",
+    "garbled",
+    "rm_pairs",
 )
 
 

@@ -819,15 +819,21 @@ def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
     run.finish(job)
     series = (job.results_dir / "rlhf" / f"{job.name}.csv").read_text().splitlines()
     assert series[0] == "global_step," + ",".join(run.RLHF_STATS) and len(series) == 1 + 4
+    best = ["# wall_time_s: 60", ",".join(report.BEST_OF_N), "1,0,0.1,1.5,1,0,0,0.9", "4,0.636,0.9,3.25,0.5,0.5,0,nan"]
+    (job.results_dir / "best_of_n").mkdir()
+    (job.results_dir / "best_of_n" / "seed1.csv").write_text("\n".join(best) + "\n")
     text = report.report(job.results_dir)
-    assert "| beta0.05 | " in text and "the film was good" in text
+    assert "| beta0.05 | " in text and "the film was good" in text and "| beta0.05 | 1 | " in text
+    assert "## Best-of-N from pi_SFT (seeds 1)" in text and "1.0 min in all" in text
+    assert "| 4 | 0.64 (1) | 0.90 (1) | 3.25 (1) | 0.50 (1) | 0.50 (1) | 0.00 (1) | – |" in text
     assert (job.results_dir / "curves" / "reviews.png").exists()
 
 
 def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_path):
     """rlhf_block counts a seed as over-optimized when its gold score ends more than 10% below its peak while the KL
     grows past its value there and the RM score ends at least as high (Gao et al. 2022), and no other; gives the
-    controller's final KL beside its target, and the default runs' wall time."""
+    controller's final KL beside its target, and the default runs' wall time; names each fall's hack by the larger of
+    the spam and garbled shares at the end; and gives best-of-N's last point."""
     folder = tmp_path / "rlhf"
     rise = [i / 99 for i in range(100)]  # 0 to 1 over 100 iterations
     fall = [1 - r for r in rise]
@@ -839,6 +845,7 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
         ("beta0", 3): (falls_late, falls_late, rise),  # gold fell with the score
         ("beta0", 4): (rise, falls_late, fall),  # gold fell as the KL fell: the controller pulling back, not this
         ("beta0", 5): (rise, dips, rise),  # gold fell, but by less than 10%
+        ("beta0", 6): (rise, falls_late, rise),  # over-optimized, onto garbled text
         ("adaptive", 1): (rise, rise, [2.1] * 100),
         ("adaptive", 2): (rise, rise, [2.2] * 100),
         ("beta0.05", 1): (rise, rise, rise),
@@ -848,10 +855,20 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
         rows = []
         for i in range(100):
             stats = {"score": score[i], "gold_score": gold[i], "kl": kl[i], "kl_coef": 0.1 * seed}
+            stats |= {"spam": rise[i] if seed == 1 else 0.0, "garbled": rise[i] / 2 if seed == 6 else 0.0}
             rows.append([(i + 1) * 128] + [stats.get(name, 0.5) for name in run.RLHF_STATS])
         run.write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", run.RLHF_STATS, rows)
+    (folder / "best_of_n").mkdir()
+    best = ["# commit: abc", ",".join(report.BEST_OF_N), "1,0,0.1,1.5,1,0,0,0.9", "4,0.636,0.9,3.25,1,0,0,0.8"]
+    (folder / "best_of_n" / "seed1.csv").write_text("\n".join(best) + "\n")
     block = report.rlhf_block(tmp_path)
-    assert "beta0 1 of 5 (seed 1: gold 0.6 to 0.2 as KL grew 0.6 to 1.0)" in block
+    # the last tenth: the mean of rise over iterations 90 to 99, 0.95, and half of it
+    assert "beta0 2 of 6 (seed 1: gold 0.6 to 0.2 as KL grew 0.6 to 1.0; spam 0.95; seed 6: gold" in block
+    assert "as KL grew 0.6 to 1.0; garbled 0.48)" in block and report.BLIND_SPOT in block
+    assert (
+        "reached gold 3.25 at N = 4 (KL 0.64 nats, analytic; 1.50 at N = 1), with the reward models of seeds 1."
+        in block
+    )
     assert "adaptive 0 of 2" in block and "beta0.05 0 of 1" in block
     assert "held the KL over the last tenth of training at 2.15 ± 0.07 nats, for a target of 2" in block
     assert "took 1.0–1.0 min for all three stages, with torch's threads on test machine (1 run;" in block
@@ -972,3 +989,4 @@ def test_best_of_n_keeps_the_rm_favourite_of_n_with_its_analytic_kl(tmp_path):
     scores = [row[2] for row in rows]
     assert scores[0] <= scores[1] <= scores[2], "the best of more responses (nested: the first N) scores no lower"
     assert all(row[4] + row[5] + row[6] == pytest.approx(1.0) for row in rows), "each kept response has one form"
+    assert all(math.isnan(row[7]) or 0 <= row[7] <= 1 for row in rows), "the RM's accuracy on the kept responses"

@@ -2,6 +2,7 @@
 budget (stop and resume, determinism, cached stages, bad input)."""
 
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -183,6 +184,24 @@ def test_the_grammar_is_well_formed_and_the_gold_reward_is_the_valence_sum():
     assert len(set(rlhf.WORDS)) == len(rlhf.WORDS) and len({rlhf.PAD, rlhf.BOS, rlhf.EOS}) == 3
 
 
+def test_preference_pairs_are_two_responses_to_one_prompt_whose_clause_gold_counts(tiny_run):
+    _, run_dir = tiny_run
+    args = rlhf_tiny_args(run_dir.parent)
+    sft = rlhf.new_model(args, "cpu", rlhf.load_checkpoint(str(run_dir / "sft.pt"), args, "sft")[0]["model"])
+    tokens, mask, chosen, rejected, n_train = rlhf.preference_pairs(sft, args, "cpu")
+    P = rlhf.PROMPT_LENGTH
+    assert torch.equal(tokens[chosen, :P], tokens[rejected, :P]), "a pair answers one prompt"
+    gold, _ = rlhf.gold_scores(tokens, mask)
+    assert (gold[chosen] > gold[rejected]).all() and 0 < n_train < len(chosen)
+    prompts = {" ".join(rlhf.WORDS[t] for t in row[1:]) for row in tokens[:, :P].tolist()}
+    assert len(prompts) > 10 and all(re.fullmatch(rf"{rlhf.CLAUSE} and", p) for p in prompts), prompts
+    # The same response after a good and a bad first clause: the reader counts the prompt's clause
+    gold, _ = rlhf.gold_scores(
+        *tokens_of("the film was superb and the plot was good <eos>", "the film was awful and the plot was good <eos>")
+    )
+    assert gold.tolist() == [5.0, -1.0]
+
+
 def test_generation_masks_and_pads_after_the_first_eos():
     torch.manual_seed(0)
     lm = rlhf.TinyLM(16, 1, 2)
@@ -333,8 +352,8 @@ BAD_INPUTS = [
     (["--total-episodes", "32"], "less than one batch of 64"),
     (["--minibatch-size", "48"], "--minibatch-size 48 does not divide --batch-size 64"),
     (["--n-head", "3"], "--n-head 3 does not divide --d-model 64"),
-    (["--response-length", "30"], "--response-length must be in [3, 29]"),
-    (["--response-length", "1"], "--response-length must be in [3, 29]"),
+    (["--response-length", "27"], "--response-length must be in [5, 26]"),
+    (["--response-length", "1"], "--response-length must be in [5, 26]"),
     (["--rm-pairs", "2"], "--rm-pairs must be in [100, inf]"),
     (["--adaptive-kl", "--kl-coef", "0"], "--adaptive-kl needs a positive --kl-coef"),
     (["--advantage", "grpo", "--group-size", "7"], "--group-size 7 does not divide --batch-size 64"),
@@ -413,7 +432,7 @@ def test_rloo_is_dr_grpo_scaled_by_k_over_k_minus_1():
 
 
 def tokens_of(*texts):
-    """Sequences [B, T] and response masks of texts "the NOUN ...": the prompt is "<bos> the NOUN"."""
+    """Sequences [B, T] and response masks of texts "the NOUN was ADJ and ...": the prompt is their first clause."""
     rows = [[rlhf.BOS] + [rlhf.TOKEN[w] for w in text.split()] for text in texts]
     width = max(map(len, rows))
     tokens = torch.tensor([row + [rlhf.PAD] * (width - len(row)) for row in rows])
@@ -423,13 +442,13 @@ def tokens_of(*texts):
 
 def test_each_response_has_one_form_and_spam_is_not_well_formed():
     texts = [
-        "the film was good <eos>",
-        "the film was very awful <eos>",  # well formed, and as bad as spam by gold: the form tells them apart
+        "the film was good and the plot was fine <eos>",
+        "the film was awful and the plot was bad and the cast was dull <eos>",  # well formed, and as bad as spam
         "the film was good and the film was good <eos>",
-        "the film was was good <eos>",
+        "the film was good and was good <eos>",
     ]
     gold, forms = rlhf.gold_scores(*tokens_of(*texts))
-    assert gold.tolist() == [2.0, -6.0, -6.0, -6.0]
+    assert gold.tolist() == [3.0, -6.0, -6.0, -6.0]
     assert forms["well_formed"].tolist() == [1, 1, 0, 0]
     assert forms["spam"].tolist() == [0, 0, 1, 0]
     assert forms["garbled"].tolist() == [0, 0, 0, 1]
@@ -480,7 +499,9 @@ def test_group_baselines_run_from_the_command_line(advantage, tmp_path):
 def test_sequence_logprobs_sum_each_responses_token_log_probs():
     torch.manual_seed(0)
     lm = rlhf.TinyLM(16, 1, 2)
-    tokens, mask = tokens_of("the film was good <eos>", "the plot was not bad and the cast was fine <eos>")
+    tokens, mask = tokens_of(
+        "the film was good and the set was dull <eos>", "the plot was bad and the cast was fine <eos>"
+    )
     logits = lm(tokens)[0].double()
     expected = []
     for i in range(2):
@@ -497,8 +518,8 @@ def test_dpo_is_the_reward_models_loss_on_the_implicit_reward():
     torch.manual_seed(1)
     sft, moved = rlhf.TinyLM(16, 1, 2), rlhf.TinyLM(16, 1, 2)
     agent = rlhf.Agent(moved, moved, "policy-head")
-    chosen, chosen_mask = tokens_of("the film was superb <eos>")
-    rejected, rejected_mask = tokens_of("the film was awful <eos>")
+    chosen, chosen_mask = tokens_of("the film was fine and the plot was superb <eos>")
+    rejected, rejected_mask = tokens_of("the film was fine and the plot was awful <eos>")
     mb = {"chosen_tokens": chosen, "chosen_mask": chosen_mask, "rejected_tokens": rejected}
     mb |= {"rejected_mask": rejected_mask}
     mb |= {

@@ -12,9 +12,9 @@ rlhf = load_script("ppo_rlhf.py")
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
-    # Responses of at most 6 tokens, so that some never reach their EOS; a beta that a dropped coefficient would show.
+    # Responses of at most 8 tokens, so that some never reach their EOS; a beta that a dropped coefficient would show.
     path = tmp_path_factory.mktemp("rlhf")
-    args = rlhf_tiny_args(path, response_length=6, kl_coef=0.3, no_eos_score=-2.5)
+    args = rlhf_tiny_args(path, response_length=8, kl_coef=0.3, no_eos_score=-2.5)
     run_dir = path / "run"
     calls = {"rollout": [], "compute_rewards": [], "compute_gae": [], "clipped_surrogate_loss": [], "value_loss": []}
     patch = pytest.MonkeyPatch()
