@@ -431,6 +431,19 @@ def test_rloo_is_dr_grpo_scaled_by_k_over_k_minus_1():
     assert torch.allclose(rloo, 4 / 3 * rlhf.group_advantages(rewards, mask, 4, "dr-grpo"))
 
 
+def test_grpos_division_makes_its_beta_beta_over_the_groups_std():
+    """With the KL penalty in the reward, GRPO's advantage is Dr. GRPO's with the score and beta both divided by the
+    std of the group's summed rewards: the penalty's weight differs from group to group."""
+    rng = np.random.default_rng(3)
+    scores, logprobs, ref_logprobs = t64(rng.normal(size=4), rng.normal(size=(4, 5)), rng.normal(size=(4, 5)))
+    mask, beta = torch.ones(4, 5, dtype=torch.float64), 0.05
+    rewards = rlhf.compute_rewards(scores, logprobs, ref_logprobs, mask, beta)
+    sigma = rewards.sum(1).std()
+    grpo = rlhf.group_advantages(rewards, mask, 4, "grpo")
+    rescaled = rlhf.compute_rewards(scores / sigma, logprobs, ref_logprobs, mask, beta / sigma)
+    assert torch.allclose(grpo, rlhf.group_advantages(rescaled, mask, 4, "dr-grpo"), atol=1e-7)
+
+
 def tokens_of(*texts):
     """Sequences [B, T] and response masks of texts "the NOUN was ADJ and ...": the prompt is their first clause."""
     rows = [[rlhf.BOS] + [rlhf.TOKEN[w] for w in text.split()] for text in texts]
