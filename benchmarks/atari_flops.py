@@ -18,7 +18,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import load_script, machine, versions  # noqa: E402
+from common import load_script  # noqa: E402
+from results import machine, versions  # noqa: E402
 
 ppo_atari = load_script("ppo_atari.py")
 

@@ -22,7 +22,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import commit, load_script, machine, versions  # noqa: E402
+from common import load_script  # noqa: E402
+from results import commit, machine, versions  # noqa: E402
 
 NS = [1, 2, 4, 8, 16, 32, 64]
 

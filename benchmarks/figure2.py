@@ -26,7 +26,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import commit, load_script, machine, versions  # noqa: E402
+from common import load_script  # noqa: E402
+from results import commit, machine, versions  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "results" / "figure2"
 POLICY = ("actor_mean", "actor_logstd")  # the parameters that interpolate; the value network does not enter

@@ -20,7 +20,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import load_script, machine, versions  # noqa: E402
+from common import load_script  # noqa: E402
+from results import machine, versions  # noqa: E402
 
 
 def atari_returns(env_id, episodes, seed):

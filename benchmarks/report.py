@@ -33,7 +33,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from details import DETAILS_END, DETAILS_START, details_block  # noqa: E402
 
-from common import RLHF_STATS, UPDATE_STATS, load_script, read_csv, replace_between, score  # noqa: E402
+from common import load_script, replace_between  # noqa: E402
+from results import RLHF_STATS, UPDATE_STATS, read_csv, score  # noqa: E402
 from suites import (  # noqa: E402
     ATARI_NAMES,
     COLUMNS,

@@ -25,7 +25,6 @@ import argparse
 import os
 import re
 import shlex
-import shutil
 import signal
 import subprocess
 import sys
@@ -35,19 +34,12 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import (  # noqa: E402
-    RLHF_STATS,
-    UPDATE_STATS,
-    commit,
-    load_script,
-    machine,
-    read_rlhf,
-    read_run,
-    score,
-    versions,
-    write_csv,
-)
+from common import load_script  # noqa: E402
+from results import commit, copy_run, machine, read_run, score, versions, write_run  # noqa: E402
 from suites import MUJOCO, SUITES, TABLE4, Suite  # noqa: E402, F401
+
+# The packages whose versions every run's CSV records; a script adds its own as RESULTS_PACKAGES.
+PACKAGES = ("torch", "numpy", "gymnasium", "mujoco", "ale-py")
 
 
 @dataclass
@@ -236,31 +228,15 @@ def read_attempts(job):
     return [line.rstrip("\n").split("\t") for line in path.read_text().splitlines() if line.strip()]
 
 
-def write_series(path, columns, rows):
-    """A per-iteration series as a CSV: global_step (exact) and then the columns (6 significant digits)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    lines = [",".join(("global_step", *columns))] + [
-        ",".join((f"{step:.0f}", *(f"{x:.6g}" for x in rest))) for step, *rest in rows
-    ]
-    path.write_text("\n".join(lines) + "\n")
-
-
-def held_out_accuracy(job):
-    """ppo_rlhf.py: how often its reward model ranked held-out pairs of pi_SFT's responses as gold does, else None."""
-    path = job.run_dir / "reward_model.pt"
-    if not path.exists():
-        return None
-    import torch
-
-    return torch.load(path, map_location="cpu", weights_only=True)["held_out_accuracy"]
-
-
 def finish(job):
-    """Turn a finished run directory into its CSV."""
-    checkpoint, rows, beta, series, updates = read_run(job.run_dir)
+    """Turn a finished run directory into its results folder's files (results.write_run); returns its score. What the
+    run logged decides which series it has; a script may add packages (RESULTS_PACKAGES) and header lines
+    (results_header(flags, env_id)) of its own."""
+    logs = read_run(job.run_dir)
     attempts = read_attempts(job)
     commits = sorted({a[1] for a in attempts}) or ["unknown"]  # every attempt may have added steps
     wall = sum(float(a[2]) for a in attempts)
+    script = load_script(job.script)
     header = [
         ("command", shlex.join(job.command())),
         ("suite", job.suite),
@@ -268,46 +244,16 @@ def finish(job):
         ("script", job.script),
         ("env_id", job.env_id),
         ("seed", job.seed),
-        ("global_step", checkpoint["global_step"]),
+        ("global_step", logs.global_step),
         ("commit", ", ".join(commits)),
         ("machine", machine()),
-        (
-            "versions",
-            versions(
-                (
-                    "torch",
-                    "numpy",
-                    "gymnasium",
-                    "mujoco",
-                    "ale-py",
-                    *(["stable-baselines3"] if "sb3" in job.script else []),
-                    *(["sb3-contrib", "rl_zoo3"] if "sb3_mujoco" in job.script else []),
-                )
-            ),
-        ),
-        *(
-            [("hyperparameters", load_script(job.script).hyperparameters(job.flags[1], job.env_id)[1])]
-            if "sb3_mujoco" in job.script
-            else []
-        ),
+        ("versions", versions((*PACKAGES, *getattr(script, "RESULTS_PACKAGES", ())))),
+        *(script.results_header(job.flags, job.env_id) if hasattr(script, "results_header") else []),
         ("wall_time_s", f"{wall:.0f}"),
         ("attempts", len(attempts)),
-        *([("beta_range", beta)] if beta else []),
-        *([("rm_held_out_accuracy", f"{rm_accuracy:.4f}")] if (rm_accuracy := held_out_accuracy(job)) else []),
     ]
-    if series:  # beta after each update, for the report's plot of it
-        write_series(job.results_dir / "beta" / f"{job.name}.csv", ("beta", "kl"), series)
-    if updates:  # the update's statistics per iteration, for the report's diagnostics
-        write_series(job.results_dir / "updates" / f"{job.name}.csv", UPDATE_STATS, updates)
-    rlhf = read_rlhf(job.run_dir)
-    if rlhf:  # ppo_rlhf.py: the rlhf/* scalars per iteration, and the responses it printed last
-        write_series(job.results_dir / "rlhf" / f"{job.name}.csv", RLHF_STATS, rlhf)
-        log = (job.run_dir / "log.txt").read_text().splitlines() if (job.run_dir / "log.txt").exists() else []
-        samples = [line.strip() for line in log if line.startswith("  score ")][-3:]
-        (job.results_dir / "samples").mkdir(parents=True, exist_ok=True)
-        (job.results_dir / "samples" / f"{job.name}.txt").write_text("".join(f"{line}\n" for line in samples))
-    write_csv(job.csv, header, rows)  # last: the CSV's presence means that the run is finished
-    return score(rows)
+    write_run(job.results_dir, job.name, header, logs)
+    return score(logs.rows)
 
 
 def running_elsewhere(job):
@@ -435,12 +381,7 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
             continue
         source = find_equivalent(job, results_root)
         if source is not None:
-            job.csv.parent.mkdir(parents=True, exist_ok=True)
-            for series in ("beta", "updates"):  # a run's series go with it: beta (KL runs), the update's statistics
-                if (source.parent / series / source.name).exists():
-                    (job.results_dir / series).mkdir(parents=True, exist_ok=True)
-                    shutil.copyfile(source.parent / series / source.name, job.results_dir / series / job.csv.name)
-            shutil.copyfile(source, job.csv)  # last, as in finish(): the CSV's presence means the run is finished
+            copy_run(source, job.results_dir, job.name)  # the CSV and the series that go with it
             print(f"{job.name}: the same run is finished in {_rel(source)}; copied", flush=True)
             done += 1
             continue

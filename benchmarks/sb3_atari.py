@@ -27,6 +27,8 @@ from common import sb3_main
 FRAME_SKIP = 4
 N_ENVS, N_STEPS = 8, 128
 ROLLOUT = N_ENVS * N_STEPS  # agent steps per rollout
+# What run.py records of a run beside the packages every run records.
+RESULTS_PACKAGES = ("stable-baselines3",)
 
 
 @dataclass

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from common import sb3_main
 
 ALGOS = ("a2c", "trpo")
+# What run.py records of a run beside the packages every run records.
+RESULTS_PACKAGES = ("stable-baselines3", "sb3-contrib", "rl_zoo3")
 
 
 @dataclass
@@ -68,6 +70,12 @@ def hyperparameters(algo, env_id):
         " (the Zoo has no entry for this task: SB3's defaults)" if key == "default" else ""
     )
     return dict(table[key]), source
+
+
+def results_header(flags, env_id):
+    """The header lines run.py adds to a run's CSV: which RL Zoo entry the run's --algo took on env_id."""
+    algo = flags[flags.index("--algo") + 1] if "--algo" in flags else Args.algo
+    return [("hyperparameters", hyperparameters(algo, env_id)[1])]
 
 
 def make_model(args, run_dir):

@@ -42,7 +42,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import commit, load_script, machine, replace_between, versions  # noqa: E402
+from common import load_script, replace_between  # noqa: E402
+from results import commit, machine, versions  # noqa: E402
 
 # A suite: its env, our scripts, and their peers.
 # Each run also measures the env alone.

@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import report  # noqa: E402
 import run  # noqa: E402
 
-from common import UPDATE_STATS, read_csv, write_csv  # noqa: E402
+from results import RLHF_STATS, UPDATE_STATS, read_csv, write_csv, write_series  # noqa: E402
 
 # One iteration of ppo_continuous.py's default batch is 2048 steps; InvertedPendulum is the cheapest env.
 TINY_GRID = ["--envs", "InvertedPendulum", "--seeds", "1"]
@@ -818,7 +818,7 @@ def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
     )
     run.finish(job)
     series = (job.results_dir / "rlhf" / f"{job.name}.csv").read_text().splitlines()
-    assert series[0] == "global_step," + ",".join(run.RLHF_STATS) and len(series) == 1 + 4
+    assert series[0] == "global_step," + ",".join(RLHF_STATS) and len(series) == 1 + 4
     best = ["# wall_time_s: 60", ",".join(report.BEST_OF_N), "1,0,0.1,1.5,1,0,0,0.9", "4,0.636,0.9,3.25,0.5,0.5,0,nan"]
     (job.results_dir / "best_of_n").mkdir()
     (job.results_dir / "best_of_n" / "seed1.csv").write_text("\n".join(best) + "\n")
@@ -856,8 +856,8 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
         for i in range(100):
             stats = {"score": score[i], "gold_score": gold[i], "kl": kl[i], "kl_coef": 0.1 * seed}
             stats |= {"spam": rise[i] if seed == 1 else 0.0, "garbled": rise[i] / 2 if seed == 6 else 0.0}
-            rows.append([(i + 1) * 128] + [stats.get(name, 0.5) for name in run.RLHF_STATS])
-        run.write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", run.RLHF_STATS, rows)
+            rows.append([(i + 1) * 128] + [stats.get(name, 0.5) for name in RLHF_STATS])
+        write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", RLHF_STATS, rows)
     (folder / "best_of_n").mkdir()
     best = ["# commit: abc", ",".join(report.BEST_OF_N), "1,0,0.1,1.5,1,0,0,0.9", "4,0.636,0.9,3.25,1,0,0,0.8"]
     (folder / "best_of_n" / "seed1.csv").write_text("\n".join(best) + "\n")
@@ -874,7 +874,7 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
     assert "took 1.0–1.0 min for all three stages, with torch's threads on test machine (1 run;" in block
     assert block.startswith(report.RLHF_START) and block.endswith(report.RLHF_END)
     # Tenths count from the end, so that the last is the last tenth of the iterations, as report.md's table takes it.
-    series = np.arange(25.0)[:, None].repeat(1 + len(run.RLHF_STATS), axis=1)
+    series = np.arange(25.0)[:, None].repeat(1 + len(RLHF_STATS), axis=1)
     assert report.tenths(series, "score")[-1] == (23 + 24) / 2
 
 
