@@ -1,5 +1,5 @@
 """Every benchmark suite in one place: what runs (the grid of run.py) and the constants its report needs (report.py).
-A new suite is an entry in SUITES.
+A new suite is an entry in SUITES, whose `report` names its module in benchmarks/reports/.
 """
 
 from __future__ import annotations
@@ -39,6 +39,8 @@ class Suite:
     )  # variant -> the envs and seeds it runs on
     env_flag: str | None = "--env-id"  # how the script takes the env; None: the "env" is only the runs' label
     budget_flag: str = "--total-timesteps"  # how the script takes the budget
+    report: str = "mujoco"  # the module of benchmarks/reports/ that writes its report.md and README lines
+    in_readme: bool = False  # whether README.md's Results block summarizes it (at its own budget)
 
 
 SUITES = {
@@ -48,6 +50,7 @@ SUITES = {
         [1, 2, 3],
         1_000_000,
         "ppo_continuous.py defaults (the paper's Table 3, clip 0.2)",
+        in_readme=True,
     ),
     # Table 1: every row keeps the other hyperparameters at ppo_continuous.py's defaults. The KL rows
     # start at beta = 1, as the paper's did. "No clipping or penalty" is the KL script with beta 0.
@@ -69,6 +72,8 @@ SUITES = {
         [1, 2, 3],
         1_000_000,
         "the paper's Table 1 rows; everything else at the scripts' defaults",
+        report="table1",
+        in_readme=True,
     ),
     # Does the collapse of beta at the end of the adaptive-KL runs matter? The same row with the lr held constant.
     "beta_collapse": Suite(
@@ -122,6 +127,8 @@ SUITES = {
             "zoo": (["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4"], [1, 2, 3]),
             "sb3": (["PongNoFrameskip-v4", "BreakoutNoFrameskip-v4"], [1, 2, 3]),
         },
+        report="atari",
+        in_readme=True,
     ),
     # RLHF (issues 29, 40, 47): beta of the KL penalty to pi_SFT fixed at 0 (no leash), 0.01, 0.05 (the default) and
     # 0.2, or adapted by Ziegler et al.'s controller toward 2 nats from 0.05; the three group baselines in place of the
@@ -150,6 +157,7 @@ SUITES = {
         " Dr. GRPO's and RLOO's advantages at beta 0.05, and DPO at beta 0.1 and 0.5",
         env_flag=None,
         budget_flag="--total-episodes",
+        report="rlhf",
     ),
     # The paper's Figure 3 (issue 41): the algorithms PPO was compared with, on the mujoco suite's tasks and budget.
     # A2C is Stable-Baselines3's, TRPO sb3-contrib's, each with the RL Zoo's hyperparameters for the task (SB3's
@@ -163,6 +171,7 @@ SUITES = {
         [1, 2, 3],
         1_000_000,
         "SB3's A2C and sb3-contrib's TRPO with the RL Zoo's hyperparameters, beside the mujoco suite's PPO",
+        report="figure3",
     ),
     # The paper's §6.3 humanoid showcase (issue 50): Table 4 on Humanoid-v5, the maintained stand-in for
     # RoboschoolHumanoid. 32 actors, T 512, 15 epochs, minibatch 4,096, gamma 0.99, lambda 0.95 (the defaults), the log
@@ -174,6 +183,8 @@ SUITES = {
         10_010_624,  # 611 batches of 32 x 512: the first whole batch past 10M steps
         "ppo_continuous.py with the paper's Table 4 (32 actors, T 512, 15 epochs, minibatch 4,096, log std annealed"
         " from -0.7 to -1.6, lr adapted toward KL 0.01)",
+        report="humanoid",
+        in_readme=True,
     ),
 }
 

@@ -173,3 +173,32 @@ def rlhf_tiny_args(tmp_path, name="run", **overrides):
     types = {f.name: type(getattr(rlhf.Args(), f.name)) for f in dataclasses.fields(rlhf.Args)}
     values = {name: types[name](value) for name, value in zip(names, flags[1::2], strict=True)}
     return rlhf.Args(**{**values, "torch_threads": 1, "run_dir": str(tmp_path / name), **overrides})
+
+
+def fake_run(folder, env_id, variant, seed, last100_mean, steps=100_000):
+    """A results CSV whose last 100 episodes average last100_mean, after 50 early episodes that must not count."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from results import write_csv
+
+    returns = [-1e4] * 50 + [last100_mean - 1.0, last100_mean + 1.0] * 50
+    rows = [((i + 1) * steps // len(returns), r, 10) for i, r in enumerate(returns)]
+    header = [
+        ("command", "test"),
+        ("env_id", env_id),
+        ("seed", seed),
+        ("global_step", steps),
+        ("commit", "abc1234"),
+        ("versions", "test versions"),
+        ("machine", "test machine"),
+        ("wall_time_s", "60"),
+    ]
+    write_csv(folder / f"{env_id}__{variant}__seed{seed}.csv", header, rows)
+
+
+def fake_random(results, env_id, returns):
+    """results/random/<env_id>.csv with the random policy's episodes scoring `returns`."""
+    path = results / "random" / f"{env_id}.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = ["# command: test", "episode,episodic_return,episodic_length"]
+    lines += [f"{i},{r},1" for i, r in enumerate(returns)]
+    path.write_text("\n".join(lines) + "\n")

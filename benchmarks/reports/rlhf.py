@@ -1,0 +1,333 @@
+"""The rlhf family: ppo_rlhf.py's suite. Per setting, each metric's mean over the last tenth of training; per seed,
+whether it was over-optimized and by what hack; best-of-N from pi_SFT; the RM and gold scores against sqrt(KL); the
+responses each run printed last; and the README's RLHF block."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+from common import load_script
+from reports.base import fmt, ordered_variants, provenance, save_figure, where_run
+from reports.stats import mean_std
+from results import BEST_OF_N, RESULTS, RLHF_STATS, load_runs, read_best_of_n, read_rlhf_series
+from suites import SUITES
+
+ORDER = 0  # where its suites stand in the READMEs' Results block: by ORDER, then by folder name
+
+# ppo_rlhf.py's suite: what its table shows of each run, the mean over the last tenth of its iterations.
+RLHF_COLUMNS = [
+    ("score", "RM score"),
+    ("gold_score", "gold score"),
+    ("kl", "KL to pi_SFT (nats)"),
+    ("entropy", "entropy"),
+    ("well_formed", "well formed"),
+    ("spam", "spam"),
+    ("garbled", "garbled"),
+    ("eos_fraction", "ends in EOS"),
+    ("response_length", "length"),
+    ("rm_accuracy", "RM accuracy on the policy's pool"),
+]
+BLIND_SPOT = (
+    "The spam rule is a blind spot planted in the reward model's data: π_SFT never says a clause twice, so no pair it"
+    " learned from ranks a repeat."
+)
+
+
+def tenths(run, name):
+    """The mean of a run's rlhf/<name> over each tenth of its iterations, in order, counted from the end: the last
+    is the mean of the last tenth, as in report.md."""
+    import numpy as np
+
+    column = run[:, 1 + RLHF_STATS.index(name)]
+    width = max(1, len(column) // 10)
+    first = len(column) % width
+    with warnings.catch_warnings():  # an iteration with no pair of different gold has no RM accuracy: nan
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return [np.nanmean(column[i : i + width]) for i in range(first, len(column), width)]
+
+
+def falls(series):
+    """{(variant, seed): text} for each run over-optimized (Gao et al. 2022): its gold score, per tenth of training,
+    ended more than 10% below its peak while its KL to pi_SFT grew past its value there and its RM score ended at
+    least as high; the text names the hack by the larger of the spam and garbled shares of the last tenth."""
+    out = {}
+    for key, run in sorted(series.items()):
+        gold, score, kl = (tenths(run, name) for name in ("gold_score", "score", "kl"))
+        peak = max(range(len(gold)), key=gold.__getitem__)
+        if gold[-1] < gold[peak] - 0.1 * abs(gold[peak]) and kl[-1] > kl[peak] and score[-1] >= score[peak]:
+            spam, garbled = tenths(run, "spam")[-1], tenths(run, "garbled")[-1]
+            hack = f"spam {spam:.2f}" if spam >= garbled else f"garbled {garbled:.2f}"
+            if max(spam, garbled) < 0.1:
+                hack = f"well-formed text the RM overrates (spam {spam:.2f}, garbled {garbled:.2f})"
+            out[key] = f"gold {gold[peak]:.1f} to {gold[-1]:.1f} as KL grew {kl[peak]:.1f} to {kl[-1]:.1f}; {hack}"
+    return out
+
+
+def best_of_n_lines(best):
+    """report.md's table of best-of-N from pi_SFT: per N, each metric's mean ± std over the seeds' reward models."""
+    import numpy as np
+
+    names = [(n, h) for n, h in RLHF_COLUMNS if n in BEST_OF_N[2:-1]]
+    names = [("kl", "KL to pi_SFT (nats, analytic)"), *names, ("rm_accuracy", "RM accuracy on the kept responses")]
+    lines = ["| N | " + " | ".join(heading for _, heading in names) + " |", "|---" * (len(names) + 1) + "|"]
+    tables = [table for _, table in best.values()]
+    for i, n in enumerate(tables[0][:, 0]):
+        cells = []
+        for name, _ in names:
+            values = [t[i, BEST_OF_N.index(name)] for t in tables if not np.isnan(t[i, BEST_OF_N.index(name)])]
+            cells.append(f"{fmt(*mean_std(values))} ({len(values)})" if values else "–")
+        lines.append(f"| {n:.0f} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def write_report(folder, runs, reference, results):
+    """Write <folder>/report.md and its curves (rlhf_report); returns the markdown."""
+    return rlhf_report(Path(folder), runs)
+
+
+def readme_lines(folder, results, reference, full):
+    """None: the rlhf suite is not a table of returns; the README has its own block (rlhf_block)."""
+    return []
+
+
+def rlhf_report(folder, runs):
+    """<folder>/report.md for the rlhf suite: per setting, each metric's mean over the last tenth of the iterations,
+    then the mean ± std over seeds, and per seed; best-of-N from pi_SFT; <folder>/curves/reviews.png: the RM score and
+    the gold score against sqrt(KL) over training, as Gao et al. (2022) plot over-optimization, with best-of-N's
+    frontier; and the responses each run printed last."""
+    series = read_rlhf_series(folder)
+    best = read_best_of_n(folder)
+    variants = ordered_variants("rlhf", runs)
+    header = "| setting | " + " | ".join(heading for _, heading in RLHF_COLUMNS) + " | RM accuracy, pi_SFT's pairs |"
+    lines = [f"# {folder.name}: RLHF on the review language", "", "Generated by `benchmarks/report.py`.", ""]
+    lines += [*provenance(runs), "", header, "|---" * (len(RLHF_COLUMNS) + 2) + "|"]
+    for variant in variants:
+        runs_of = [series[key] for key in sorted(series) if key[0] == variant]
+        cells = []
+        for name, _ in RLHF_COLUMNS:
+            last = [tenths(s, name)[-1] for s in runs_of]
+            cells.append(f"{fmt(*mean_std(last))} ({len(last)})")
+        held_out = [float(r.meta["rm_held_out_accuracy"]) for r in runs if r.variant == variant]
+        cells.append(f"{fmt(*mean_std(held_out))} ({len(held_out)})" if held_out else "–")
+        lines.append(f"| {variant} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Each run's mean over the last tenth of training, as the mean ± std over seeds (n). The reward model's accuracy"
+        " is the share of pairs of responses with different gold scores that it ranks as gold does: on a pool of the"
+        " policy's responses, the first 16 of every rollout so far, and on held-out pairs of pi_SFT's responses to one"
+        " prompt, of the kind it was trained on. Spam says a clause twice; garbled text is outside the grammar.",
+        "",
+        "Per seed, at the end of training (the means of its last tenth; the pool's pairs at the end):",
+        "",
+        "| setting | seed | RM score | gold score | KL to pi_SFT (nats) | RM accuracy, held out | RM accuracy, pool"
+        " (pairs) | spam | garbled | over-optimized |",
+        "|---" * 10 + "|",
+    ]
+    fell = falls(series)
+    held_out = {r.seed: float(r.meta["rm_held_out_accuracy"]) for r in runs if "rm_held_out_accuracy" in r.meta}
+    for variant in variants:
+        for seed in sorted(seed for v, seed in series if v == variant):
+            run = series[(variant, seed)]
+            cells = [f"{tenths(run, name)[-1]:.2f}" for name in ("score", "gold_score", "kl")]
+            cells.append(f"{held_out[seed]:.2f}" if seed in held_out else "–")
+            pairs = run[-1, 1 + RLHF_STATS.index("rm_pairs")]
+            cells.append(f"{tenths(run, 'rm_accuracy')[-1]:.2f} ({pairs:,.0f})")
+            cells += [f"{tenths(run, name)[-1]:.2f}" for name in ("spam", "garbled")]
+            cells.append(fell.get((variant, seed), "no"))
+            lines.append(f"| {variant} | {seed} | " + " | ".join(cells) + " |")
+    lines += ["", BLIND_SPOT]
+    if best:
+        meta = [m for m, _ in best.values()]
+        wall = sum(float(m.get("wall_time_s", 0)) for m in meta)
+        lines += [
+            "",
+            f"## Best-of-N from pi_SFT (seeds {', '.join(map(str, sorted(best)))})",
+            "",
+            "For each of 256 prompts, N responses of pi_SFT, and the one the seed's reward model scores highest kept:"
+            " the frontier of gold against KL that needs no optimizer, with KL[best-of-N || pi_SFT] = log N - (N - 1)"
+            f" / N (`benchmarks/best_of_n.py`; commits {'; '.join(sorted({m.get('commit', '?') for m in meta}))};"
+            f" {wall / 60:.1f} min in all).",
+            "",
+            *best_of_n_lines(best),
+        ]
+    lines += [
+        "",
+        "![RM and gold score against sqrt(KL)](curves/reviews.png)",
+        "",
+        "Per seed, the gold score (solid, left axis) and the RM's score (dashed, right axis) against sqrt(KL), each a"
+        " moving average over 10 iterations, with the gold score's peak marked:",
+        "",
+        "![per seed](curves/seeds.png)",
+        "",
+        "## The responses the reward model scored highest, last printed",
+        "",
+    ]
+    for variant in variants:
+        for seed in sorted(seed for v, seed in series if v == variant):
+            path = folder / "samples" / f"reviews__{variant}__seed{seed}.txt"
+            text = path.read_text().strip() if path.exists() else "(none kept)"
+            lines += [f"{variant}, seed {seed}:", "", "```", text, "```", ""]
+    plot_rlhf(folder, series, variants, best)
+    plot_rlhf_seeds(folder, series, variants)
+    text = "\n".join(lines) + "\n"
+    (folder / "report.md").write_text(text)
+    return text
+
+
+def plot_rlhf(folder, series, variants, best=None):
+    """<folder>/curves/reviews.png: per setting, the mean over seeds of the RM and gold scores against sqrt(KL); and
+    best-of-N's, N = 1 ... 64, at its analytic KL."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), sharex=True)
+    for variant in variants:
+        runs_of = [series[key] for key in sorted(series) if key[0] == variant]
+        n = min(len(s) for s in runs_of)
+        mean = np.mean([s[:n] for s in runs_of], axis=0)
+        x = np.sqrt(np.clip(mean[:, 1 + RLHF_STATS.index("kl")], 0, None))
+        for ax, name in zip(axes, ("score", "gold_score"), strict=True):
+            ax.plot(x, mean[:, 1 + RLHF_STATS.index(name)], label=f"{variant} ({len(runs_of)})", lw=1.2)
+    if best:
+        mean = np.mean([table for _, table in best.values()], axis=0)
+        for ax, name in zip(axes, ("score", "gold_score"), strict=True):
+            label = f"best-of-N, N = 1 ... {mean[-1, 0]:.0f} ({len(best)})"
+            ax.plot(np.sqrt(mean[:, 1]), mean[:, BEST_OF_N.index(name)], "k--o", ms=3, lw=1, label=label)
+    for ax, title in zip(axes, ("reward model's score", "gold score"), strict=True):
+        ax.set_title(title)
+        ax.set_xlabel("sqrt(KL[pi || pi_SFT]), nats^0.5")
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=7)
+    return save_figure(fig, folder, "reviews.png")
+
+
+def moving_average(x, width=10):
+    """The mean of each window of `width` iterations, one per iteration from the width-th on."""
+    import numpy as np
+
+    return np.convolve(x, np.ones(width) / width, mode="valid")
+
+
+def plot_rlhf_seeds(folder, series, variants):
+    """<folder>/curves/seeds.png: a panel per setting and seed, the gold score and the RM's score against sqrt(KL)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    seeds = sorted({seed for _, seed in series})
+    fig, axes = plt.subplots(len(variants), len(seeds), figsize=(3.2 * len(seeds), 2.2 * len(variants)), squeeze=False)
+    for row, variant in enumerate(variants):
+        for col, seed in enumerate(seeds):
+            ax = axes[row][col]
+            ax.set_title(f"{variant}, seed {seed}", fontsize=8)
+            if (variant, seed) not in series:
+                ax.axis("off")
+                continue
+            run = series[(variant, seed)]
+            x = moving_average(np.sqrt(np.clip(run[:, 1 + RLHF_STATS.index("kl")], 0, None)))
+            gold = moving_average(run[:, 1 + RLHF_STATS.index("gold_score")])
+            ax.plot(x, gold, color="C1", lw=1)
+            peak = int(np.argmax(gold))
+            ax.plot(x[peak], gold[peak], "v", color="C1", ms=6)
+            ax.set_ylabel("gold", fontsize=7, color="C1")
+            rm = ax.twinx()
+            rm.plot(x, moving_average(run[:, 1 + RLHF_STATS.index("score")]), color="C0", lw=1, ls="--")
+            rm.set_ylabel("RM score", fontsize=7, color="C0")
+            for a in (ax, rm):
+                a.tick_params(labelsize=6)
+            ax.grid(alpha=0.3)
+            if row == len(variants) - 1:
+                ax.set_xlabel("sqrt(KL[pi || pi_SFT])", fontsize=7)
+    return save_figure(fig, folder, "seeds.png", dpi=80)
+
+
+RLHF_START = "<!-- rlhf: generated by benchmarks/report.py from benchmarks/results/rlhf; do not edit by hand -->"
+
+
+RLHF_END = "<!-- end of rlhf -->"
+
+
+def rlhf_block(results=RESULTS):
+    """The README's RLHF results: the suite's table in short, what a default run took here, and what the runs say
+    about the KL penalty: whether gold fell while the reward model's score held or rose, and the controller's KL."""
+    folder = Path(results) / "rlhf"
+    runs = load_runs(folder) if folder.is_dir() else []
+    if not runs:
+        return "\n".join([RLHF_START, "No run of the rlhf suite is committed yet.", RLHF_END])
+    finished = {(r.variant, r.seed) for r in runs}
+    series = {key: s for key, s in read_rlhf_series(folder).items() if key in finished}
+    variants = ordered_variants("rlhf", runs)
+    seeds = ", ".join(map(str, sorted({r.seed for r in runs})))
+    steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in runs}))
+    columns = [c for c in RLHF_COLUMNS if c[0] in ("score", "gold_score", "kl", "entropy", "spam", "garbled")]
+    columns.append(("rm_accuracy", "RM accuracy, the policy's pool"))
+    lines = [
+        RLHF_START,
+        "",
+        f"**`rlhf`: {len(runs)} runs (seeds {seeds}; {steps} responses each)**"
+        " ([report, plot and samples](benchmarks/results/rlhf/report.md)): each run's mean over the last tenth of"
+        " training, as the mean ± std over seeds:",
+        "",
+        "| setting | " + " | ".join(heading for _, heading in columns) + " |",
+        "|---" * (len(columns) + 1) + "|",
+    ]
+    last = {}
+    for variant in variants:
+        runs_of = {seed: series[(v, seed)] for v, seed in sorted(series) if v == variant}
+        last[variant] = {name: [tenths(s, name)[-1] for s in runs_of.values()] for name in RLHF_STATS}
+        cells = [fmt(*mean_std(last[variant][name])) for name, _ in columns]
+        lines.append(f"| {variant} | " + " | ".join(cells) + " |")
+    script = load_script("ppo_rlhf.py").Args()
+    # The suite's variant with no flags of its own, at the script's default budget, is `python ppo_rlhf.py`.
+    plain = [v for v, (_, flags) in SUITES["rlhf"].variants.items() if not flags]
+    default_runs = [r for r in runs if r.variant in plain and int(r.meta["global_step"]) == script.total_episodes]
+    minutes = sorted(float(r.meta["wall_time_s"]) / 60 for r in default_runs)
+    lines.append("")
+    if minutes:
+        lines.append(
+            f"- **Time.** A default run, `python ppo_rlhf.py`, took {minutes[0]:.1f}–{minutes[-1]:.1f} min for all"
+            f" three stages, with {where_run(default_runs)} ({len(minutes)} run{'s' if len(minutes) > 1 else ''};"
+            " other work may have shared it)."
+        )
+    # Stages 1 and 2 depend only on the seed: one reward model a seed, whichever setting ran it.
+    held_out = {r.seed: float(r.meta["rm_held_out_accuracy"]) for r in runs if "rm_held_out_accuracy" in r.meta}
+    if held_out:
+        lines.append(
+            f"- **The reward model** ranked {fmt(*mean_std(list(held_out.values())))} of held-out pairs of π_SFT's"
+            f" responses as gold does ({len(held_out)} seeds, one reward model each); the table's last column is its"
+            " accuracy on a pool of the policy's own responses, where the policy went."
+        )
+    fell, overoptimized = falls(series), []
+    for variant in variants:
+        texts = [f"seed {seed}: {text}" for (v, seed), text in fell.items() if v == variant]
+        detail = f" ({'; '.join(texts)})" if texts else ""
+        overoptimized.append(f"{variant} {len(texts)} of {len(last[variant]['score'])}{detail}")
+    lines.append(
+        "- **Over-optimization** (Gao et al. 2022). Seeds whose gold score, per tenth of training, ended more than 10%"
+        " below its peak while the KL to π_SFT grew past its value there and the RM score ended at least as high, with"
+        " the hack that the last tenth shows most: " + ", ".join(overoptimized) + f". {BLIND_SPOT}"
+    )
+    best = read_best_of_n(folder)
+    if best:
+        import numpy as np
+
+        mean = np.mean([table for _, table in best.values()], axis=0)
+        gold, kl = mean[:, BEST_OF_N.index("gold_score")], mean[:, BEST_OF_N.index("kl")]
+        lines.append(
+            f"- **Best-of-N** from π_SFT, the frontier no optimizer is needed for, reached gold {gold[-1]:.2f} at N ="
+            f" {mean[-1, 0]:.0f} (KL {kl[-1]:.2f} nats, analytic; {gold[0]:.2f} at N = 1), with the reward models"
+            f" of seeds {', '.join(map(str, sorted(best)))}."
+        )
+    adaptive = [v for v, (_, flags) in SUITES["rlhf"].variants.items() if flags == ["--adaptive-kl"] and v in last]
+    for variant in adaptive:
+        lines.append(
+            f"- **The controller** held the KL over the last tenth of training at {fmt(*mean_std(last[variant]['kl']))}"
+            f" nats, for a target of {script.kl_target:g}, with β there at {fmt(*mean_std(last[variant]['kl_coef']))}."
+        )
+    return "\n".join(lines + ["", RLHF_END])

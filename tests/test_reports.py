@@ -1,0 +1,543 @@
+"""benchmarks/report.py and benchmarks/reports/: each suite's report and the README blocks, on hand-made CSVs, and the
+arithmetic of the paper's (Table 1's normalized score, its verdict, the differences and their standard errors)."""
+
+import csv
+import math
+import statistics
+import sys
+import types
+
+import numpy as np
+import pytest
+from conftest import ROOT, fake_random, fake_run
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import report  # noqa: E402
+
+from reports import base, figure3, mujoco, rlhf, table1, training  # noqa: E402
+from results import (  # noqa: E402
+    BEST_OF_N,
+    RESULTS,
+    RLHF_STATS,
+    UPDATE_STATS,
+    load_reference,
+    load_runs,
+    random_score,
+    run_files,
+    write_csv,
+    write_series,
+)
+from run import check_grid, make_grid  # noqa: E402
+from suites import SUITES, TABLE1_ENVS, Suite  # noqa: E402
+
+
+def test_report_normalizes_as_the_paper_does(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    # Env A: random scores 0; clip0.2 scores 10 and 20 (mean 15, the best), no-clip 5.
+    # Env B: random scores -10; clip0.2 scores 10, no-clip 30 (the best).
+    fake_random(results, "A-v0", [-1.0, 1.0])
+    fake_random(results, "B-v0", [-12.0, -8.0])
+    fake_run(folder, "A-v0", "clip0.2", 1, 10.0)
+    fake_run(folder, "A-v0", "clip0.2", 2, 20.0)
+    fake_run(folder, "A-v0", "no-clip", 1, 5.0)
+    fake_run(folder, "B-v0", "clip0.2", 1, 10.0)
+    fake_run(folder, "B-v0", "no-clip", 1, 30.0)
+    # A variant run on env A only does not enter the common set of envs.
+    runs = load_runs(folder)
+    assert sorted(r.score for r in runs) == [5.0, 10.0, 10.0, 20.0, 30.0]
+    random = {"A-v0": random_score("A-v0", results), "B-v0": random_score("B-v0", results)}
+    assert random == {"A-v0": 0.0, "B-v0": -10.0}
+
+    norm, envs, best = table1.normalized_scores(runs, random)
+    assert envs == ["A-v0", "B-v0"] and best == {"A-v0": "clip0.2", "B-v0": "no-clip"}
+    clip = ((10 - 0) / (15 - 0) + (20 - 0) / (15 - 0) + (10 + 10) / (30 + 10)) / 3
+    noclip = ((5 - 0) / (15 - 0) + (30 + 10) / (30 + 10)) / 2
+    assert norm["clip0.2"][0] == pytest.approx(clip) and norm["clip0.2"][1] == 3
+    assert norm["no-clip"][0] == pytest.approx(noclip) and norm["no-clip"][1] == 2
+
+    text = report.report(folder, results=results)
+    assert f"| clip0.2 | {clip:.2f} | 3 | 0.82 |" in text
+    assert f"| no-clip | {noclip:.2f} | 2 | -0.39 |" in text
+    assert "| kl0.01 | not run | – | 0.74 |" in text
+    assert "15.00 ± 7.07 (2)" in text  # A, clip0.2: mean and sample std of 10 and 20
+    assert "Seeds: 1, 2; 5 runs." in text and "abc1234" in text and "test machine" in text
+    assert (folder / "report.md").read_text() == text
+    for env in ("A-v0", "B-v0"):
+        png = folder / "curves" / f"{env}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+        assert f"curves/{env}.png" in text
+
+
+def test_a_suite_of_changes_is_compared_with_its_default(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "shortfalls"
+    fake_random(results, "Swimmer-v5", [0.0])
+    for seed, (default, gamma) in enumerate([(80.0, 110.0), (90.0, 120.0), (100.0, 130.0)], start=1):
+        fake_run(folder, "Swimmer-v5", "clip0.2", seed, default)
+        fake_run(folder, "Swimmer-v5", "gamma0.999", seed, gamma)
+    fake_run(folder, "Swimmer-v5", "const-lr", 1, 95.0)  # one seed: no std, so no difference is claimed
+    reference = {("paper_fig3", "Swimmer", "clip0.2"): (110.0, None, "the paper")}
+    text = report.report(folder, reference=reference, results=results)
+    se = math.sqrt(100 / 3 + 100 / 3)  # both samples have variance 100
+    assert f"| Swimmer-v5 | gamma0.999 | 120.0 ± 10.0 (3) | **+30.0 ± {se:.1f}** | yes (110.0) |" in text
+    assert "| Swimmer-v5 | clip0.2 | 90.00 ± 10.00 (3) | – | no (110.0) |" in text
+    assert "| Swimmer-v5 | const-lr | 95.00 (1) | – | no (110.0) |" in text
+
+
+def test_atari_report_gives_each_arms_difference_from_the_default(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "atari"
+    scores = {
+        "ppo": [10.0, 12.0, 14.0],
+        "vf0.5": [20.0, 22.0, 24.0],  # ahead by 10, far beyond 2 standard errors
+        "sb3": [9.0, 13.0, 17.0],  # ahead by 1, well within them
+    }
+    for variant, values in scores.items():
+        for seed, value in enumerate(values, start=1):
+            fake_run(folder, "A-v0", variant, seed, value)
+    fake_run(folder, "A-v0", "default", 1, 30.0)  # one seed: no standard error, so no verdict
+    fake_run(folder, "A-v0", "zoo", 1, 25.0)
+    text = report.report(folder, reference={}, results=results)
+    # The scores, one row per game and setting: both of the paper's metrics, the mean over all of training
+    # (fake_run's 50 episodes at -1e4, then the 100 that make the score; in the thousands, so no decimals) and
+    # over the last 100 episodes.
+    for variant, name in (("ppo", "ours"), ("vf0.5", "ours, --vf-coef 0.5"), ("sb3", "SB3 PPO (RL Zoo)")):
+        whole = [(50 * -1e4 + 100 * v) / 150 for v in scores[variant]]
+        last = scores[variant]
+        row = (
+            f"| A-v0 | {name} | {statistics.mean(whole):,.0f} ± {statistics.stdev(whole):,.0f} (3)"
+            f" | {statistics.mean(last):.2f} ± {statistics.stdev(last):.2f} (3) |"
+            + (" not measured |" if variant == "ppo" else "  |")  # the random policy, on the game's first row only
+        )
+        assert row in text
+    # By hand: ppo's and vf0.5's scores vary by 4 over their 3 seeds, sb3's by 16, so the standard errors of the
+    # differences are sqrt(4/3 + 4/3) and sqrt(16/3 + 4/3). Over all of training (fake_run's 50 early episodes at
+    # -1e4, then the 100 that make the score), each difference and its error shrink to 100/150 of these.
+    se_vf = math.sqrt(4 / 3 + 4 / 3)
+    se_sb3 = math.sqrt(16 / 3 + 4 / 3)
+    scale = 100 / 150
+    d_vf = statistics.mean(scores["vf0.5"]) - statistics.mean(scores["ppo"])
+    d_sb3 = statistics.mean(scores["sb3"]) - statistics.mean(scores["ppo"])
+    vf = (
+        f"**{d_vf:+.1f} ± {se_vf:.1f}** | **{d_vf * scale:+.1f} ± {se_vf * scale:.1f}**"
+        " | ahead of ppo by more than 2 standard errors"
+    )
+    sb3 = f"{d_sb3:+.1f} ± {se_sb3:.1f} | {d_sb3 * scale:+.1f} ± {se_sb3 * scale:.1f} | within 2 standard errors"
+    for variant, name in (("vf0.5", "ours, --vf-coef 0.5"), ("sb3", "SB3 PPO (RL Zoo)")):
+        cell = f"{statistics.mean(scores[variant]):.2f} ± {statistics.stdev(scores[variant]):.2f} (3)"
+        assert f"| A-v0 | {name} | {cell} | {vf if variant == 'vf0.5' else sb3} |" in text
+    assert "| A-v0 | ours, before the issue-14 fixes | 30.00 (1) | – | – | fewer than 2 seeds a side |" in text
+    behind = [0.0, 2.0, 4.0]  # vf0.5 now behind ppo by 10, with the same spread
+    for seed, value in enumerate(behind, start=1):
+        fake_run(folder, "A-v0", "vf0.5", seed, value)
+    d_vf = statistics.mean(behind) - statistics.mean(scores["ppo"])
+    text = report.report(folder, reference={}, results=results)
+    assert f"**{d_vf:+.1f} ± {se_vf:.1f}**" in text and "behind ppo by more than 2 standard errors" in text
+    # The README's short block: ours at the defaults, with the RL Zoo's settings, and the peer; the single arms and
+    # the history only in the full one.
+    short = report.readme_block(results=results, reference={})
+    zoo = [line for line in short.splitlines() if line.startswith("| A-v0 | ours with the RL Zoo's hyperparameters (")]
+    assert len(zoo) == 1 and "| 25.00 (1) |" in zoo[0]  # its last 100 games
+    assert "| A-v0 | ours | " in short and "| A-v0 | SB3 PPO (RL Zoo) |" in short
+    assert "| A-v0 | ours, --vf-coef 0.5 |" not in short and "issue-14" not in short
+    assert "| A-v0 | ours, --vf-coef 0.5 |" in report.readme_block(results=results, reference={}, full=True)
+
+
+def test_an_older_env_version_is_compared_with_the_default_on_the_newest(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "shortfalls"
+    for seed, (v5, v4) in enumerate([(5000.0, 7000.0), (6000.0, 8000.0), (7000.0, 9000.0)], start=1):
+        fake_run(folder, "InvertedDoublePendulum-v5", "clip0.2", seed, v5)
+        fake_run(folder, "InvertedDoublePendulum-v4", "clip0.2", seed, v4)
+        fake_run(folder, "InvertedDoublePendulum-v5", "const-lr", seed, v5 + 100.0)
+    reference = {("paper_fig3", "InvertedDoublePendulum", "clip0.2"): (8000.0, None, "the paper")}
+    lines = report.report(folder, reference=reference, results=results).splitlines()
+    se = math.sqrt(1e6 / 3 + 1e6 / 3)  # both samples have variance 1000²
+    rows = [
+        line
+        for line in lines
+        if line.startswith("| InvertedDoublePendulum") and "reaches" not in line and line.count("|") == 6
+    ]
+    assert rows == [
+        "| InvertedDoublePendulum-v5 | clip0.2 | 6,000 ± 1,000 (3) | – | no (8,000) |",
+        f"| InvertedDoublePendulum-v5 | const-lr | 6,100 ± 1,000 (3) | +100.0 ± {se:,.1f} | no (8,000) |",
+        # v4's gap is beyond 2 standard errors: in bold
+        f"| InvertedDoublePendulum-v4 | clip0.2 | 8,000 ± 1,000 (3) | **+2,000.0 ± {se:,.1f}** | yes (8,000) |",
+    ]
+
+
+@pytest.mark.parametrize("kl003_score, holds", [(80.0, True), (120.0, False)])
+def test_table1_verdict_is_computed_from_the_scores(tmp_path, kl003_score, holds):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    fake_random(results, "A-v0", [0.0])
+    scores = {v: 50.0 for v in SUITES["table1"].variants} | {
+        "clip0.2": 100.0,
+        "no-clip": 10.0,
+        "kl0.03": kl003_score,
+    }
+    for variant, value in scores.items():
+        fake_run(folder, "A-v0", variant, 1, value)
+    text = report.report(folder, results=results)
+    assert f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:**" in text
+    if holds:  # one seed: no standard errors, so the gaps stand alone
+        assert (
+            "clip 0.2 is the best of the 11 rows, ahead of kl0.03 by 0.20;"
+            " no clipping or penalty is the worst, behind clip0.1 by 0.40;"
+            " every adaptive KL row is below clip 0.2: the best, kl0.03 (0.80), is behind it by 0.20."
+        ) in text
+    else:  # kl0.03 (1.20 on the scale where the best, itself, is 1) beats clip 0.2 (100 / 120)
+        assert "clip 0.2 (0.83) is not the best row: kl0.03 is (1.00), ahead by 0.17" in text
+        assert "adaptive KL kl0.03 (1.00) is not below clip 0.2 (0.83): it is ahead by 0.17." in text
+    assert "±" not in text.split("The paper's order")[1].split("\n")[0]
+    assert "| clip0.2 | " + f"{100 / max(100.0, kl003_score):.2f} (1) | abc1234 |" in text, (
+        "the per-env breakdown, with its commits"
+    )
+    assert (
+        f"**The paper's order {'holds' if holds else 'does not hold'} here, in the mean scores:**"
+        in report.readme_block(results=results)
+    ), "README too"
+    (folder / "A-v0__beta10__seed1.csv").unlink()
+    assert "waits for all 11 rows on every env and seed: 10 of 11 runs are in." in report.report(
+        folder, results=results
+    )
+    fake_run(folder, "A-v0", "beta10", 1, 50.0)
+    fake_random(results, "B-v0", [0.0])
+    fake_run(folder, "B-v0", "clip0.2", 1, 100.0)  # a second env, on which only clip 0.2 has run: every row has a score
+    text = report.report(folder, results=results)  # on A-v0 alone, but the verdict waits for the whole grid
+    assert (
+        "waits for all 11 rows on every env and seed: 12 of 22 runs are in. Until then the scores are over A-v0,"
+        in text
+    )
+    assert "The paper's order" not in text and "The paper's order" not in report.readme_block(results=results)
+    (folder / "B-v0__clip0.2__seed1.csv").unlink()
+    fake_run(folder, "A-v0", "clip0.2", 2, 100.0)  # and a second seed, which only clip 0.2 has
+    assert "waits for all 11 rows on every env and seed: 12 of 22 runs are in." in report.report(
+        folder, results=results
+    )
+
+
+def test_table1_standard_errors_pool_the_seeds_of_each_env(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    scores = {
+        ("A-v0", "clip0.2"): [10.0, 20.0],
+        ("A-v0", "no-clip"): [4.0, 8.0],
+        ("B-v0", "clip0.2"): [10.0, 14.0, 12.0],
+        ("B-v0", "no-clip"): [0.0, 30.0, 15.0],
+    }
+    for (env, variant), values in scores.items():
+        for seed, value in enumerate(values, start=1):
+            fake_run(folder, env, variant, seed, value)
+    fake_run(folder, "A-v0", "kl0.01", 1, 9.0)  # one run on one env: no standard error, and no entry in the common envs
+    runs, random = load_runs(folder), {"A-v0": 0.0, "B-v0": -15.0}
+    norm, envs, best = table1.normalized_scores(runs, random)
+    assert envs == ["A-v0"] and sorted(table1.standard_errors(runs, random, envs, best)) == [
+        "clip0.2",
+        "no-clip",
+    ]  # kl0.01: one run
+    runs = [r for r in runs if r.variant != "kl0.01"]
+    norm, envs, best = table1.normalized_scores(runs, random)
+    se = table1.standard_errors(runs, random, envs, best)
+    # By hand: A's scale is clip0.2's mean, 15 (random 0); B's is 30 (no-clip's mean 15, random -15). The score of a
+    # row is the mean of its 5 runs, 2 on A and 3 on B; the variance of that mean is (2 var_A + 3 var_B) / 5².
+    var = {
+        "clip0.2": (2 * statistics.variance([10 / 15, 20 / 15]) + 3 * statistics.variance([25 / 30, 29 / 30, 27 / 30])),
+        "no-clip": (2 * statistics.variance([4 / 15, 8 / 15]) + 3 * statistics.variance([15 / 30, 45 / 30, 30 / 30])),
+    }
+    assert se == pytest.approx({v: math.sqrt(x) / 5 for v, x in var.items()})
+
+
+@pytest.mark.parametrize("beta3, within", [([100.0, 120.0], True), ([104.0, 106.0], False)])
+def test_table1_verdict_says_when_a_gap_is_within_the_noise(tmp_path, beta3, within):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    fake_random(results, "A-v0", [0.0])
+    scores = {v: [50.0, 52.0] for v in SUITES["table1"].variants} | {
+        "clip0.2": [100.0, 100.0],
+        "no-clip": [10.0, 12.0],
+        "beta3": beta3,
+    }
+    for variant, values in scores.items():
+        for seed, value in enumerate(values, start=1):
+            fake_run(folder, "A-v0", variant, seed, value)
+    line = next(
+        line for line in report.report(folder, results=results).splitlines() if line.startswith("**The paper's order")
+    )
+    best = statistics.mean(scores["beta3"])  # beta3 leads, by one seed, and sets the scale
+    d = (best - 100.0) / best
+    e = statistics.stdev([x / best for x in beta3]) / math.sqrt(
+        2
+    )  # the gap's error is beta3's: clip 0.2's two seeds agree
+    assert f"beta3 is (1.00), ahead by {d:.2f} ± {e:.2f}" + (" (within 2 standard errors);" if within else ";") in line
+    assert (
+        " ± is the standard error over seeds" in line
+        and ("a gap within twice it is one these seeds cannot settle" in line) == within
+    )
+    assert f"| beta3 | 1.00 ± {e:.2f} | 2 |" in report.report(folder, results=results)
+
+
+def test_report_uses_only_envs_every_variant_ran(tmp_path):
+    results = tmp_path / "results"
+    folder = results / "table1"
+    for env in ("A-v0", "B-v0"):
+        fake_random(results, env, [0.0])
+        fake_run(folder, env, "clip0.2", 1, 10.0)
+    fake_run(folder, "A-v0", "kl0.01", 1, 20.0)
+    norm, envs, _ = table1.normalized_scores(load_runs(folder), {"A-v0": 0.0, "B-v0": 0.0})
+    assert envs == ["A-v0"]
+    assert norm == {"clip0.2": (0.5, 1), "kl0.01": (1.0, 1)}
+
+
+def test_learning_curve_is_the_trailing_100_episode_mean():
+    rows = [(10 * (i + 1), float(i), 1) for i in range(250)]
+    grid = [5, 10, 995, 1000, 2500, 3000]
+    got = base.curve(rows, grid)
+    for step, value in zip(grid, got, strict=True):
+        finished = [r for s, r, _ in rows if s <= step][-100:]
+        if finished:
+            assert value == pytest.approx(sum(finished) / len(finished))
+        else:
+            assert math.isnan(value)
+
+
+def test_best_window_finds_a_peak_the_score_misses():
+    # 300 episodes, episode i ending at step 10 * i: returns of 0, but 10 for episodes 51 to 200. The score is 0.
+    rows = [(10 * i, 10.0 if 50 < i <= 200 else 0.0, 1) for i in range(1, 301)]
+    assert base.best_window(rows) == (10.0, 1_500)  # the first window of 100 tens: episodes 51 to 150
+    assert base.best_window(rows[:40]) == (
+        statistics.mean(r[1] for r in rows[:40]),
+        400,
+    )  # fewer than 100: all of them
+
+
+def test_quick_start_promises_what_the_default_hopper_runs_did(tmp_path):
+    folder = tmp_path / "mujoco"
+    assert "no benchmark run" in mujoco.quickstart_block(tmp_path)
+    folder.mkdir()
+    fake_run(folder, "Hopper-v5", "clip0.2", 1, 3000.0)
+    fake_run(folder, "Hopper-v5", "clip0.2", 2, 1000.0)
+    fake_run(folder, "Walker2d-v5", "clip0.2", 1, 9999.0)  # another env and another setting do not count
+    fake_run(folder, "Hopper-v5", "const-lr", 1, 5000.0)
+    line = mujoco.quickstart_block(tmp_path).splitlines()[1]
+    assert "took 1–1 min per run" in line and "1,000–3,000 over the last 100 episodes (2 seeds" in line, line
+
+
+def test_beta_section_reads_each_runs_kl_target_from_its_command(tmp_path):
+    """d_targ comes from the run's command (or the script's default), not from the variant's name; a fixed beta is
+    left out. The score at 90% of the steps is the mean of the last 100 episodes finished by then."""
+
+    def kl_run(variant, flags, kls):
+        steps = 2048 * len(kls)  # 40,960: the 90% mark is step 36,864, when 184 of the 204 episodes have finished
+        episodes = [(200 * i, 10.0 if 200 * i <= 0.9 * steps else 0.0, 10) for i in range(1, 205)]
+        header = [
+            ("command", f"python ppo_kl_penalty.py --env-id Hopper-v5 --seed 1 {flags}".strip()),
+            ("global_step", steps),
+        ]
+        write_csv(tmp_path / f"Hopper-v5__{variant}__seed1.csv", header, episodes)
+        (tmp_path / "beta").mkdir(exist_ok=True)
+        with open(tmp_path / "beta" / f"Hopper-v5__{variant}__seed1.csv", "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["global_step", "beta", "kl"])
+            writer.writerows((2048 * (i + 1), 0.5**i, kl) for i, kl in enumerate(kls))
+
+    kl_run("kl0.01", "", [0.02] * 17 + [0.001] * 3)  # the default d_targ, 0.01: the last 3 updates are below 0.01 / 1.5
+    kl_run("kl0.01-const-lr", "--no-anneal-lr", [0.001] * 19 + [0.012])  # ends above 0.01 / 1.5
+    kl_run("wide", "--kl-target 0.03", [0.015] * 20)  # above 0.01 / 1.5 but below 0.03 / 1.5: all 20 count
+    kl_run("beta3", "--init-beta 3 --no-adaptive-beta", [0.001] * 20)
+    rows = [line for line in training.beta_section(tmp_path) if line.startswith("| Hopper-v5")]
+    early, end = f"{statistics.median(0.5**i for i in range(18)):.3g}", f"{0.5**19:.3g}"
+    # At 90% of the steps the last 100 episodes all scored 10; at the end, the last 20 of them scored 0.
+    assert rows == [
+        f"| Hopper-v5 | kl0.01 | 1 | {early} | {end} | 100% | 3 | 10.00 | 8.00 |",
+        f"| Hopper-v5 | kl0.01-const-lr | 1 | {early} | {end} | 50% | 0 | 10.00 | 8.00 |",
+        f"| Hopper-v5 | wide | 1 | {early} | {end} | 100% | 20 | 10.00 | 8.00 |",
+    ]
+
+
+def test_updates_section_averages_each_tenth_of_a_run_then_the_seeds(tmp_path):
+    (tmp_path / "updates").mkdir()
+    for seed, shift in ((1, 0.0), (2, 2.0)):  # 20 updates each: every statistic of update i is i + shift
+        fake_run(tmp_path, "Hopper-v5", "clip0.2", seed, 100.0 * seed)
+        rows = [[2048 * (i + 1)] + [i + shift] * len(UPDATE_STATS) for i in range(20)]
+        write = "\n".join(",".join(map(str, row)) for row in rows)
+        (tmp_path / "updates" / f"Hopper-v5__clip0.2__seed{seed}.csv").write_text(
+            ",".join(("global_step", *UPDATE_STATS)) + "\n" + write + "\n"
+        )
+    lines = training.updates_section(tmp_path, ["clip0.2"])
+    row = next(line for line in lines if line.startswith("| Hopper-v5 | clip0.2 (2) | explained_variance |"))
+    cells = [float(c) for c in row.strip("|").split("|")[3:]]
+    # tenth k holds updates 2k and 2k + 1: their mean is 2k + 0.5 for seed 1 and 2k + 2.5 for seed 2
+    assert cells == [2 * k + 1.5 for k in range(10)]
+    row = next(line for line in lines if line.startswith("| Hopper-v5 | clip0.2 (2) | return |"))
+    assert row.endswith("| 150.0 |"), "at the end, the mean over the seeds of their last 100 episodes: (100 + 200) / 2"
+    assert training.updates_section(tmp_path / "none", ["clip0.2"]) == []
+
+
+def test_reference_figures_have_a_source_each():
+    reference = load_reference()
+    assert len(reference) >= 30
+    assert all(source.strip() for _, _, source in reference.values())
+    assert {s for (c, _, s) in reference if c == "paper_table1"} == set(SUITES["table1"].variants)
+
+
+def test_cost_of_table1_counts_the_runs_not_done(tmp_path):
+    results = tmp_path / "results"
+    fake_run(results / "mujoco", "Hopper-v5", "clip0.2", 1, 100.0)  # one run of 60 s sets the cost per run
+    assert "132 runs, about 2 CPU-hours, of which 132 runs are not done yet (2 CPU-hours)." in table1.cost_block(
+        results
+    )
+    jobs = make_grid("table1", envs=TABLE1_ENVS, results_root=results)
+    for job in jobs[1:]:
+        fake_run(job.csv.parent, job.env_id, job.variant, job.seed, 1.0)
+    assert "of which 1 run is not done yet (0 CPU-hours)." in table1.cost_block(results)
+    fake_run(jobs[0].csv.parent, jobs[0].env_id, jobs[0].variant, jobs[0].seed, 1.0)
+    assert table1.cost_block(results).count("all of them done.") == 1
+
+
+@pytest.mark.parametrize("path,full", [("README.md", False), ("benchmarks/README.md", True)])
+def test_readme_results_block_is_generated_from_the_committed_csvs(path, full):
+    """The READMEs' Results blocks are what report.py makes from the CSVs in benchmarks/results."""
+    readme = (ROOT / path).read_text()
+    start, end = readme.index(report.README_START), readme.index(report.README_END) + len(report.README_END)
+    assert readme[start:end] == report.readme_block(full=full), "run python benchmarks/report.py"
+    if full:  # the cost of Table 1 on a cluster, from the runs' wall times
+        start, end = readme.index(table1.COST_START), readme.index(table1.COST_END) + len(table1.COST_END)
+        assert readme[start:end] == table1.cost_block(), "run python benchmarks/report.py"
+    else:  # the quick start's time and score, from the mujoco suite's Hopper runs
+        start, end = readme.index(mujoco.QUICK_START), readme.index(mujoco.QUICK_END) + len(mujoco.QUICK_END)
+        assert readme[start:end] == mujoco.quickstart_block(), "run python benchmarks/report.py"
+        start, end = readme.index(rlhf.RLHF_START), readme.index(rlhf.RLHF_END) + len(rlhf.RLHF_END)
+        assert readme[start:end] == rlhf.rlhf_block(), "run python benchmarks/report.py"
+    for folder in report.suite_folders():
+        assert (folder / "report.md").exists()
+        if base.suite_name(folder) == "figure3":  # one figure, a panel per task
+            assert (folder / "curves" / "figure3.png").exists()
+            continue
+        for env in {r.env_id for r in load_runs(folder)}:
+            assert (folder / "curves" / f"{env}.png").exists(), (folder, env)
+
+
+def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_path):
+    """rlhf_block counts a seed as over-optimized when its gold score ends more than 10% below its peak while the KL
+    grows past its value there and the RM score ends at least as high (Gao et al. 2022), and no other; gives the
+    controller's final KL beside its target, and the default runs' wall time; names each fall's hack by the larger of
+    the spam and garbled shares at the end; and gives best-of-N's last point."""
+    folder = tmp_path / "rlhf"
+    rise = [i / 99 for i in range(100)]  # 0 to 1 over 100 iterations
+    fall = [1 - r for r in rise]
+    falls_late = [min(r, 1.2 - r) for r in rise]  # peaks at 0.6 and ends at 0.2
+    dips = [min(r, 0.8) - 0.25 * max(0.0, r - 0.8) for r in rise]  # flat at 0.8, then 5% below it at the end
+    shapes = {  # (RM score, gold, KL) of each run
+        ("beta0", 1): (rise, falls_late, rise),  # over-optimized
+        ("beta0", 2): (rise, rise, rise),  # gold kept rising
+        ("beta0", 3): (falls_late, falls_late, rise),  # gold fell with the score
+        ("beta0", 4): (rise, falls_late, fall),  # gold fell as the KL fell: the controller pulling back, not this
+        ("beta0", 5): (rise, dips, rise),  # gold fell, but by less than 10%
+        ("beta0", 6): (rise, falls_late, rise),  # over-optimized, onto garbled text
+        ("adaptive", 1): (rise, rise, [2.1] * 100),
+        ("adaptive", 2): (rise, rise, [2.2] * 100),
+        ("beta0.05", 1): (rise, rise, rise),
+    }
+    for (variant, seed), (score, gold, kl) in shapes.items():
+        fake_run(folder, "reviews", variant, seed, 1.0, steps=12_800)
+        rows = []
+        for i in range(100):
+            stats = {"score": score[i], "gold_score": gold[i], "kl": kl[i], "kl_coef": 0.1 * seed}
+            stats |= {"spam": rise[i] if seed == 1 else 0.0, "garbled": rise[i] / 2 if seed == 6 else 0.0}
+            rows.append([(i + 1) * 128] + [stats.get(name, 0.5) for name in RLHF_STATS])
+        write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", RLHF_STATS, rows)
+    (folder / "best_of_n").mkdir()
+    best = ["# commit: abc", ",".join(BEST_OF_N), "1,0,0.1,1.5,1,0,0,0.9", "4,0.636,0.9,3.25,1,0,0,0.8"]
+    (folder / "best_of_n" / "seed1.csv").write_text("\n".join(best) + "\n")
+    block = rlhf.rlhf_block(tmp_path)
+    # the last tenth: the mean of rise over iterations 90 to 99, 0.95, and half of it
+    assert "beta0 2 of 6 (seed 1: gold 0.6 to 0.2 as KL grew 0.6 to 1.0; spam 0.95; seed 6: gold" in block
+    assert "as KL grew 0.6 to 1.0; garbled 0.48)" in block and rlhf.BLIND_SPOT in block
+    assert (
+        "reached gold 3.25 at N = 4 (KL 0.64 nats, analytic; 1.50 at N = 1), with the reward models of seeds 1."
+        in block
+    )
+    assert "adaptive 0 of 2" in block and "beta0.05 0 of 1" in block
+    assert "held the KL over the last tenth of training at 2.15 ± 0.07 nats, for a target of 2" in block
+    assert "took 1.0–1.0 min for all three stages, with torch's threads on test machine (1 run;" in block
+    assert block.startswith(rlhf.RLHF_START) and block.endswith(rlhf.RLHF_END)
+    # Tenths count from the end, so that the last is the last tenth of the iterations, as report.md's table takes it.
+    series = np.arange(25.0)[:, None].repeat(1 + len(RLHF_STATS), axis=1)
+    assert rlhf.tenths(series, "score")[-1] == (23 + 24) / 2
+
+
+def test_the_committed_figure3_report_is_what_report_py_makes_of_the_csvs(tmp_path):
+    """benchmarks/results/figure3/report.md is generated: stale after a CSV lands until report.py runs again."""
+    folder = RESULTS / "figure3"
+    if not any(run_files(folder)):
+        pytest.skip("no figure3 run is committed yet")
+    copy = tmp_path / "figure3"
+    copy.mkdir()
+    for _, _, _, path in run_files(folder):
+        (copy / path.name).write_bytes(path.read_bytes())
+    assert (folder / "report.md").read_text() == figure3.figure3_markdown(copy), "run python benchmarks/report.py"
+
+
+def test_figure3_counts_tasks_where_ppo_leads_trails_or_ties_each_peer(tmp_path):
+    results = tmp_path / "results"
+    for seed, noise in [(1, -1.0), (2, 0.0), (3, 1.0)]:
+        fake_run(results / "mujoco", "Hopper-v5", "clip0.2", seed, 1000 + 10 * noise)
+        fake_run(results / "mujoco", "Swimmer-v5", "clip0.2", seed, 50 + 10 * noise)
+        fake_run(results / "mujoco", "Reacher-v5", "clip0.2", seed, -5 + noise)
+        fake_run(results / "figure3", "Hopper-v5", "a2c", seed, 500 + 10 * noise)  # PPO ahead, far beyond 2 SE
+        fake_run(results / "figure3", "Swimmer-v5", "a2c", seed, 100 + 10 * noise)  # PPO behind
+        fake_run(results / "figure3", "Reacher-v5", "a2c", seed, -5.5 + noise)  # within: 0.5 apart, SE 0.8
+    fake_run(results / "figure3", "Hopper-v5", "trpo", 1, 900)  # one seed: not comparable
+    text = figure3.figure3_markdown(results / "figure3", results)
+    line = next(line for line in text.splitlines() if line.startswith("**Over the last 100 episodes"))
+    assert "against A2C (SB3), PPO is ahead on 1 (Hopper); behind on 1 (Swimmer); within 2 standard errors on 1" in line
+    assert "against TRPO (sb3-contrib), PPO is not comparable yet on 3 (Hopper, Reacher, Swimmer)" in line
+    assert "| Hopper-v5 | A2C (SB3) | 500.0 ± 10.0 (3) |" in text
+    assert (results / "figure3" / "curves" / "figure3.png").exists()
+    short = figure3.figure3_verdict(figure3.figure3_runs(results / "figure3", results), names=False)  # the README's
+    assert short == (
+        "over the last 100 episodes of 3 tasks, against A2C (SB3), PPO is ahead on 1, behind on 1, within 2 standard"
+        " errors on 1; against TRPO (sb3-contrib), PPO is not comparable yet on 3."
+    )
+
+
+def test_humanoid_report_has_both_metrics_the_published_figures_and_the_video(tmp_path):
+    folder = tmp_path / "results" / "humanoid"
+    fake_run(folder, "Humanoid-v5", "table4", 1, 1000.0)
+    fake_run(folder, "Humanoid-v5", "table4", 2, 3000.0)
+    (folder / "video").mkdir()
+    (folder / "video" / "Humanoid-v5__table4__seed1.mp4").write_bytes(b"")
+    text = report.report(folder, results=tmp_path / "results")
+    # last 100: 1,000 and 3,000; all training: (50 x -10,000 + 100 x score) / 150 = -2,666.7 and -1,333.3
+    assert "| Humanoid-v5 | table4 | 100,000 | 2,000 ± 1,414 (2) | -2,000 ± 943 (2) |" in text
+    assert "- CleanRL 1M (-v4; 1 env, Table 3's settings): 716.1 ± 49.1" in text
+    assert "[video/Humanoid-v5__table4__seed1.mp4](video/Humanoid-v5__table4__seed1.mp4)" in text
+    assert (folder / "curves" / "Humanoid-v5.png").exists()
+
+
+def test_the_readmes_example_suite_is_one_entry_and_one_module(tmp_path, monkeypatch):
+    """benchmarks/README.md's "Adding a suite": its entry of SUITES and its module of reports/ are all that run.py and
+    report.py need to run the suite and write its report and README lines."""
+    section = (ROOT / "benchmarks" / "README.md").read_text().split("## Adding a suite", 1)[1].split("\n## ", 1)[0]
+    entry, code = [block.split("```", 1)[0] for block in section.split("```python\n")[1:]]
+    monkeypatch.setitem(SUITES, "stepsize", eval("{" + entry + "}", {"Suite": Suite})["stepsize"])
+    module = types.ModuleType("reports.stepsize")
+    exec(code, module.__dict__)
+    monkeypatch.setitem(sys.modules, "reports.stepsize", module)
+    jobs = make_grid("stepsize")
+    check_grid(jobs)
+    assert sorted((job.variant, job.seed) for job in jobs) == [(v, s) for v in ("lr1e-3", "lr3e-4") for s in (1, 2, 3)]
+    results = tmp_path / "results"
+    for seed in (1, 2, 3):
+        fake_run(results / "stepsize", "Hopper-v5", "lr3e-4", seed, 1000.0 + seed)
+        fake_run(results / "stepsize", "Hopper-v5", "lr1e-3", seed, 2000.0 + seed)
+    text = report.report(results / "stepsize", reference={}, results=results)
+    # By hand: each side's scores are n + 1, 2, 3 (std 1); the gap is 1,000 with a standard error of sqrt(1/3 + 1/3).
+    assert "| Hopper-v5 | lr1e-3 | 2,002 ± 1 (3) | **+1,000.0 ± 0.8** | – |" in text
+    assert "| env | ours: lr3e-4 (n) | ours: lr1e-3 (n) | random policy |" in text, "the entry's order: default first"
+    assert (results / "stepsize" / "curves" / "Hopper-v5.png").exists()
+    assert "### `stepsize`: 6 runs (seeds 1, 2, 3; 100,000 steps each)" in report.readme_block(
+        results=results, reference={}, full=True
+    )

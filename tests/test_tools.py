@@ -1,0 +1,92 @@
+"""The benchmarks' tools beside the runner: throughput.py, film.py, best_of_n.py and sb3_mujoco.py's hyperparameters."""
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+import torch
+from conftest import ROOT
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import load_script  # noqa: E402
+from run import make_grid  # noqa: E402
+
+
+def test_throughput_replaces_only_its_own_section(tmp_path):
+    import throughput
+
+    path = tmp_path / "throughput.md"
+    throughput.write_section(path, "mujoco", "## mujoco\n\n| a | 1 |\n")
+    throughput.write_section(path, "atari", "## atari\n\n| b | 2 |\n")
+    throughput.write_section(path, "mujoco", "## mujoco\n\n| a | 3 |\n")
+    text = path.read_text()
+    assert text.startswith("# Throughput") and "| a | 3 |" in text and "| a | 1 |" not in text
+    assert "| b | 2 |" in text and text.index("## mujoco") < text.index("## atari")
+    assert text.count("<!-- suite: mujoco -->") == 1
+
+
+def test_sb3_mujoco_reads_the_rl_zoos_entry_for_the_task():
+    pytest.importorskip("rl_zoo3")
+    sb3 = load_script("benchmarks/sb3_mujoco.py")
+    params, source = sb3.hyperparameters("trpo", "HalfCheetah-v5")
+    assert source == "rl_zoo3 hyperparams/trpo.yml, entry HalfCheetah-v4" and params["normalize"] is True
+    assert params["target_kl"] == 0.04 and params["n_envs"] == 2  # the task's own entry, over the shared defaults
+    params, source = sb3.hyperparameters("a2c", "Reacher-v5")
+    assert source.endswith("entry default (the Zoo has no entry for this task: SB3's defaults)")
+    assert "normalize" not in params and params["policy"] == "MlpPolicy"
+
+
+def test_film_records_the_runs_policy_and_a_frame_of_it(tmp_path, tiny_run):
+    import film
+    import imageio.v3 as iio
+
+    (job,) = make_grid("mujoco", envs=["Hopper"], seeds=[1], runs_root=tmp_path / "runs")
+    job.run_dir.mkdir(parents=True)
+    with pytest.raises(ValueError, match="has no checkpoint"):
+        film.film(job, tmp_path / "video")
+    torch.save(torch.load(tiny_run("ppo_continuous.py")[0] / "checkpoint.pt", weights_only=True), job.checkpoint)
+    video, line = film.film(job, tmp_path / "video")
+    assert video == tmp_path / "video" / "Hopper-v5__clip0.2__seed1.mp4" and line.startswith("eval Hopper-v5 step ")
+    frame = iio.imread(video.with_suffix(".png"))
+    assert frame.ndim == 3 and frame.std() > 0, "a frame of the film, not a blank"
+    assert not list(job.run_dir.glob("videos-eval")), "the run's own folder is left as it was"
+
+
+def test_throughput_humanoid_case_measures_ours_sb3_and_the_envs_with_table4(capsys):
+    import throughput
+
+    flags = throughput.SUITES["humanoid"]["flags"]
+    assert "--num-envs 32 --num-steps 512 --update-epochs 15 --minibatch-size 4096" in flags
+    # Table 4 on a tiny rollout (the case's flags come after the suite's): 3 iterations of 32 x 8 steps
+    sps, first = throughput.measure_ours(
+        "ppo_continuous.py --num-steps 8 --minibatch-size 128", "Humanoid-v5", 768, flags
+    )
+    assert sps > 0 and first > 0
+    throughput.run_worker("env", "Humanoid-v5", 64, "humanoid")  # the 32 envs of ppo_continuous.py, alone
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["sps"] > 0
+    pytest.importorskip("stable_baselines3")  # benchmarks/requirements.txt; CI installs only ray from it
+    tiny = dict(n_envs=32, n_steps=8, batch_size=128, n_epochs=1)
+    sps, first = throughput.measure_sb3_ppo_mujoco("Humanoid-v5", 768, threads=1, **tiny)
+    assert sps > 0 and first > 0
+
+
+def test_best_of_n_keeps_the_rm_favourite_of_n_with_its_analytic_kl(tmp_path):
+    import best_of_n
+
+    assert best_of_n.analytic_kl(1) == 0 and best_of_n.analytic_kl(4) == pytest.approx(math.log(4) - 0.75)
+    rlhf_tiny = (
+        "--d-model 16 --n-layer 1 --n-head 2 --response-length 16 --sft-steps 60 --sft-learning-rate 0.01"
+        " --rm-pairs 128 --rm-epochs 1 --rm-batch-size 32 --total-episodes 16 --batch-size 16 --minibatch-size 8"
+    ).split()
+    cmd = [sys.executable, str(ROOT / "ppo_rlhf.py"), *rlhf_tiny, "--torch-threads", "1", "--run-dir", "run"]
+    subprocess.run(cmd, cwd=tmp_path, check=True, capture_output=True, timeout=300)
+    rows = best_of_n.best_of_n(tmp_path / "run", prompts=16, ns=[1, 2, 8])
+    assert [row[0] for row in rows] == [1, 2, 8] and [row[1] for row in rows] == [
+        best_of_n.analytic_kl(n) for n in (1, 2, 8)
+    ]
+    scores = [row[2] for row in rows]
+    assert scores[0] <= scores[1] <= scores[2], "the best of more responses (nested: the first N) scores no lower"
+    assert all(row[4] + row[5] + row[6] == pytest.approx(1.0) for row in rows), "each kept response has one form"
+    assert all(math.isnan(row[7]) or 0 <= row[7] <= 1 for row in rows), "the RM's accuracy on the kept responses"
