@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import load_script  # noqa: E402
 from results import commit, copy_run, machine, read_run, score, versions, write_run  # noqa: E402
-from suites import MUJOCO, SUITES, TABLE4, Suite  # noqa: E402, F401
+from suites import SUITES  # noqa: E402
 
 # The packages whose versions every run's CSV records; a script adds its own as RESULTS_PACKAGES.
 PACKAGES = ("torch", "numpy", "gymnasium", "mujoco", "ale-py")

@@ -1,5 +1,6 @@
-"""What every suite's report shares: the numbers' format, the statistics over seeds, the provenance lines, the
-table of every run, the learning curves, and which suite and report module a results folder belongs to."""
+"""What every suite's report shares: the rule a score follows, the numbers' format, the provenance lines, the table
+of every run, the learning curves, and which suite and report module a results folder belongs to (stats.py has the
+statistics over seeds)."""
 
 from __future__ import annotations
 
@@ -17,8 +18,6 @@ SCORE_RULE = (
     "A run's score is the mean return of its last 100 episodes; a cell is the mean ± sample std over seeds,"
     " with the number of seeds in brackets."
 )
-
-
 MUJOCO_VERSIONS = (
     "Our MuJoCo tasks are gymnasium's -v5 where the env column does not name another version"
     " (the paper used gym's -v1, CleanRL -v4)."
@@ -31,6 +30,7 @@ def env_base(env_id):
 
 
 def fmt(mean, std=None):
+    """'mean' or 'mean ± std', with fewer decimals the larger the mean: 2 below 100, 1 below 1,000, else none."""
     digits = 2 if abs(mean) < 100 else 1 if abs(mean) < 1000 else 0
     text = f"{mean:,.{digits}f}"
     if std is not None:
@@ -61,9 +61,9 @@ def provenance(runs):
     ]
 
 
-def suite_variants(kind):
-    """The variants of a suite in the order run.py defines them."""
-    return list(SUITES[kind].variants) if kind in SUITES else []
+def suite_variants(suite):
+    """The variants of a suite in the order suites.py defines them ([] for no suite of that name)."""
+    return list(SUITES[suite].variants) if suite in SUITES else []
 
 
 def suite_name(folder):
@@ -107,6 +107,7 @@ def best_window(rows, window=100):
 
 
 def run_table(runs):
+    """The table of every run: its steps, episodes, score, best 100 episodes, wall time, commit and beta range."""
     lines = [
         "| env | variant | seed | steps | episodes | score | best 100 episodes (at step) | wall time | commit"
         " | beta range |",
