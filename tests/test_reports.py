@@ -436,6 +436,7 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
         ("beta0", 4): (rise, falls_late, fall),  # gold fell as the KL fell: the controller pulling back, not this
         ("beta0", 5): (rise, dips, rise),  # gold fell, but by less than 10%
         ("beta0", 6): (rise, falls_late, rise),  # over-optimized, onto garbled text
+        ("dpo0.1", 1): (falls_late, falls_late, rise),  # as beta0's seed 3; but DPO never sees the RM: over-optimized
         ("adaptive", 1): (rise, rise, [2.1] * 100),
         ("adaptive", 2): (rise, rise, [2.2] * 100),
         ("beta0.05", 1): (rise, rise, rise),
@@ -460,6 +461,7 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
         in block
     )
     assert "adaptive 0 of 2" in block and "beta0.05 0 of 1" in block
+    assert "dpo0.1 1 of 1 (seed 1: gold 0.6 to 0.2 as KL grew 0.6 to 1.0; spam 0.95)" in block
     assert "held the KL over the last tenth of training at 2.15 ± 0.07 nats, for a target of 2" in block
     assert "took 1.0–1.0 min for all three stages, with torch's threads on test machine (1 run;" in block
     assert block.startswith(rlhf.RLHF_START) and block.endswith(rlhf.RLHF_END)

@@ -47,15 +47,23 @@ def tenths(run, name):
         return [np.nanmean(column[i : i + width]) for i in range(first, len(column), width)]
 
 
-def falls(series):
+def direct_variants():
+    """The rlhf suite's variants that learn from the preference pairs directly (DPO): the RM plays no part in them."""
+    return {variant for variant, (_, flags) in SUITES["rlhf"].variants.items() if "--dpo" in flags}
+
+
+def falls(series, direct=()):
     """{(variant, seed): text} for each run over-optimized (Gao et al. 2022): its gold score, per tenth of training,
     ended more than 10% below its peak while its KL to pi_SFT grew past its value there and its RM score ended at
-    least as high; the text names the hack by the larger of the spam and garbled shares of the last tenth."""
+    least as high; for a variant in `direct` (DPO), which never sees the RM, the gold and the KL alone, as Rafailov et
+    al. (2024) find direct methods over-optimize. The text names the hack by the larger of the spam and garbled shares
+    of the last tenth."""
     out = {}
     for key, run in sorted(series.items()):
         gold, score, kl = (tenths(run, name) for name in ("gold_score", "score", "kl"))
         peak = max(range(len(gold)), key=gold.__getitem__)
-        if gold[-1] < gold[peak] - 0.1 * abs(gold[peak]) and kl[-1] > kl[peak] and score[-1] >= score[peak]:
+        proxy_held = key[0] in direct or score[-1] >= score[peak]
+        if gold[-1] < gold[peak] - 0.1 * abs(gold[peak]) and kl[-1] > kl[peak] and proxy_held:
             spam, garbled = tenths(run, "spam")[-1], tenths(run, "garbled")[-1]
             hack = f"spam {spam:.2f}" if spam >= garbled else f"garbled {garbled:.2f}"
             if max(spam, garbled) < 0.1:
@@ -124,7 +132,7 @@ def rlhf_report(folder, runs):
         " (pairs) | spam | garbled | over-optimized |",
         "|---" * 10 + "|",
     ]
-    fell = falls(series)
+    fell = falls(series, direct_variants())
     held_out = {r.seed: float(r.meta["rm_held_out_accuracy"]) for r in runs if "rm_held_out_accuracy" in r.meta}
     for variant in variants:
         for seed in sorted(seed for v, seed in series if v == variant):
@@ -301,15 +309,17 @@ def rlhf_block(results=RESULTS):
             f" responses as gold does ({len(held_out)} seeds, one reward model each); the table's last column is its"
             " accuracy on a pool of the policy's own responses, where the policy went."
         )
-    fell, overoptimized = falls(series), []
+    fell, overoptimized = falls(series, direct_variants()), []
     for variant in variants:
         texts = [f"seed {seed}: {text}" for (v, seed), text in fell.items() if v == variant]
         detail = f" ({'; '.join(texts)})" if texts else ""
         overoptimized.append(f"{variant} {len(texts)} of {len(last[variant]['score'])}{detail}")
     lines.append(
         "- **Over-optimization** (Gao et al. 2022). Seeds whose gold score, per tenth of training, ended more than 10%"
-        " below its peak while the KL to π_SFT grew past its value there and the RM score ended at least as high, with"
-        " the hack that the last tenth shows most: " + ", ".join(overoptimized) + f". {BLIND_SPOT}"
+        " below its peak while the KL to π_SFT grew past its value there and the RM score ended at least as high (for"
+        " DPO, which never sees the RM, the first two), with the hack that the last tenth shows most: "
+        + ", ".join(overoptimized)
+        + f". {BLIND_SPOT}"
     )
     best = read_best_of_n(folder)
     if best:
