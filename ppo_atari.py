@@ -18,6 +18,7 @@ detail N" (of 9). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes
 
 import atexit
 import contextlib
+import itertools
 import math
 import os
 import re
@@ -30,6 +31,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
+import torch.distributed as dist
 import torch.nn as nn
 from torch.distributions import Categorical
 
@@ -130,8 +132,9 @@ def minibatch_loss(agent, batch, mb_inds, clip_coef, args):
     logratio = newlogprob - mb["logprobs"]
     ratio = logratio.exp()  # r_t(theta), eq. (6)
     advantages = mb["advantages"]
-    if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch
-        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch (all ranks' shares of it)
+        everyone = all_ranks(advantages)
+        advantages = (advantages - everyone.mean()) / (everyone.std() + 1e-8)
     pg_loss = clipped_surrogate_loss(ratio, advantages, clip_coef)
     v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
     entropy = probs.entropy().mean()
@@ -148,9 +151,43 @@ def gradient_step(agent, optimizer, loss, args):
     """One step of gradient descent on the loss."""
     optimizer.zero_grad()
     loss.backward()
+    average_gradients(agent)
     if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
         nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
     optimizer.step()
+
+
+# MANY PROCESSES. Under torchrun, P ranks run one Algorithm 1, as the paper's MPI actors did: each steps N/P of the N
+# envs and takes its share of every minibatch. These functions are where the ranks meet; in one process they do nothing.
+def rank_and_size():
+    """This process's rank and the number P of ranks: (0, 1) without torchrun."""
+    return (dist.get_rank(), dist.get_world_size()) if dist.is_initialized() else (0, 1)
+
+
+def all_ranks(x):
+    """The tensor x of every rank, concatenated in rank order (so row i of the envs' is env i of the run)."""
+    if not dist.is_initialized():
+        return x
+    parts = [torch.empty_like(x) for _ in range(dist.get_world_size())]
+    dist.all_gather(parts, x)
+    return torch.cat(parts)
+
+
+def average_gradients(agent):
+    """Each rank's gradient is of its equal share of the minibatch: their mean is the whole minibatch's gradient."""
+    grads = [p.grad for p in agent.parameters() if p.grad is not None]
+    if dist.is_initialized():
+        flat = torch.cat([g.flatten() for g in grads])  # one message, not one for each tensor
+        dist.all_reduce(flat)
+        for g, mean in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
+            g.copy_(mean.view_as(g) / dist.get_world_size())
+
+
+def seed_rank(seed, global_step):
+    """Every rank made the same weights from --seed; rank r > 0 then draws its actions and shuffles from a stream of its
+    own, seeded by (seed, r, step) at the start and at each resume. Rank 0's stream is one process's."""
+    if rank_and_size()[0] > 0:
+        torch.manual_seed(int(np.random.SeedSequence([seed, rank_and_size()[0], global_step]).generate_state(1)[0]))
 
 
 # ENVIRONMENT
@@ -163,7 +200,7 @@ def make_envs(args, num_envs=None, training=True):
     return ale_py.AtariVectorEnv(
         game,
         num_envs,
-        num_threads=min(num_envs, os.cpu_count() or 1),
+        num_threads=min(num_envs, (os.cpu_count() or 1) // int(os.environ.get("LOCAL_WORLD_SIZE", 1)) or 1),
         max_num_frames_per_episode=args.max_episode_frames,  # a time limit: a truncation, whose value is bootstrapped
         repeat_action_probability=repeat_action_probability,  # sticky actions, for ALE/<Game>-v5 only
         noop_max=30,  # atari detail 1: up to 30 no-ops at the start of each game
@@ -222,22 +259,22 @@ def train(args, stop=()):
     """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates. Returns
     (agent, run_dir). Raises Diverged when the loss or the weights stop being finite, and Stopped once main()'s `stop`
     flag is set (by Ctrl-C or SIGTERM), after the iteration's checkpoint."""
-    from torch.utils.tensorboard import SummaryWriter
-
     checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
     run_dir = args.run_dir or new_run_dir(args)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     global_step = checkpoint["global_step"] if checkpoint else 0
     device = pick_device(args.device)
     T, N = args.num_steps, args.num_envs
+    rank, world_size = rank_and_size()
+    n = N // world_size  # torchrun: this rank steps envs rank n, ..., rank n + n - 1 of the N
     batch_size = N * T
     num_iterations = args.total_timesteps // batch_size
     compute_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else minibatch_loss  # backward too
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
     # On --resume, purge_step drops what the run logged after its checkpoint.
     with (
-        contextlib.closing(make_envs(args)) as envs,
-        SummaryWriter(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
+        contextlib.closing(make_envs(args, n)) as envs,
+        open_writer(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
     ):
         agent = Agent(envs.single_action_space.n).to(device)
         # Core detail 3: Adam with eps 1e-5. The lr is a tensor: annealing changes a number, not what --compile built.
@@ -248,17 +285,20 @@ def train(args, stop=()):
             optimizer.load_state_dict(checkpoint["optimizer"])
             torch.set_rng_state(checkpoint["torch_rng_state"])
             print(f"resuming {run_dir} at step {global_step:,}")
+        seed_rank(args.seed, global_step)
 
-        # Rollout storage: T steps of N envs. Frames stay uint8 until the network.
-        obs = torch.zeros((T, N, 4, 84, 84), dtype=torch.uint8, device=device)
-        actions = torch.zeros((T, N), dtype=torch.long, device=device)
-        logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, N), device=device)
+        # Rollout storage: T steps of this rank's n envs. Frames stay uint8 until the network.
+        obs = torch.zeros((T, n, 4, 84, 84), dtype=torch.uint8, device=device)
+        actions = torch.zeros((T, n), dtype=torch.long, device=device)
+        logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, n), device=device)
         # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
-        next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + np.arange(N))
+        next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + rank * n + np.arange(n))
         next_obs = torch.as_tensor(next_obs, device=device)
         frame_numbers = infos["episode_frame_number"]
-        lost_life = np.zeros(N, dtype=bool)
-        video = GameVideo(args.env_id, f"{run_dir}/videos", frame_numbers[0]) if args.capture_video else None
+        lost_life = np.zeros(n, dtype=bool)
+        video = (
+            GameVideo(args.env_id, f"{run_dir}/videos", frame_numbers[0]) if args.capture_video and rank == 0 else None
+        )
         action_names = [a.name for a in envs.ale.get_action_set()]
         fire = action_names.index("FIRE") if args.fire_on_life_loss and "FIRE" in action_names else None
         log = Log(writer, args, global_step, num_iterations * batch_size)
@@ -310,26 +350,28 @@ def train(args, stop=()):
             batch = {key: value.flatten(0, 1) for key, value in rollout.items()}
             update_stats = []
             for _epoch in range(args.update_epochs):
-                # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches.
-                for mb_inds in torch.randperm(batch_size, device=device).split(args.minibatch_size):
+                # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches (1/P of each per rank).
+                for mb_inds in torch.randperm(n * T, device=device).split(args.minibatch_size // world_size):
                     loss, stats = compute_loss(agent, batch, mb_inds, clip_coef, args)
                     gradient_step(agent, optimizer, loss, args)
                     update_stats.append(stats)
 
             # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
-            losses = {name: torch.stack([s[name] for s in update_stats]).mean().item() for name in update_stats[0]}
-            residual = batch["returns"] - batch["values"]
-            losses["explained_variance"] = (1 - residual.var() / batch["returns"].var()).item()
+            losses = {name: torch.stack([s[name] for s in update_stats]).mean() for name in update_stats[0]}
+            losses = {name: all_ranks(value[None]).mean().item() for name, value in losses.items()}  # over all ranks
+            residual = all_ranks(batch["returns"] - batch["values"])
+            losses["explained_variance"] = (1 - residual.var() / all_ranks(batch["returns"]).var()).item()
             log.update(global_step, optimizer.param_groups[0]["lr"].item(), losses)
             writer.add_scalar("charts/clip_coef", clip_coef.item(), global_step)
 
             # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
             if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
                 raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
-            if stop or iteration % args.save_every == 0 or iteration == num_iterations:
+            stopping = bool(all_ranks(torch.tensor([bool(stop)])).any())  # torchrun: all stop at one iteration
+            if stopping or iteration % args.save_every == 0 or iteration == num_iterations:
                 writer.flush()  # the curve on disk reaches at least the checkpoint's step
                 save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration)
-            if stop:
+            if stopping:
                 raise Stopped(f"saved step {global_step:,}: continue with --resume {checkpoint_path}")
     print(f"saved {checkpoint_path}")
     return agent, run_dir
@@ -438,8 +480,25 @@ def pick_device(name):
     return torch.device(("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name)
 
 
+class NoWriter:
+    """The TensorBoard writer of ranks > 0 under torchrun, which writes nothing: rank 0 keeps the run's one record."""
+
+    def __getattr__(self, name):
+        return lambda *args, **kwargs: None
+
+
+def open_writer(run_dir, purge_step):
+    """The run's TensorBoard writer on rank 0; on the other ranks of a torchrun run, one that writes nothing."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    if rank_and_size()[0] == 0:
+        return SummaryWriter(run_dir, purge_step=purge_step)
+    return contextlib.nullcontext(NoWriter())
+
+
 class Log:
-    """The run's TensorBoard scalars, and its progress on the console every 10 s and at the end."""
+    """The run's TensorBoard scalars, and its progress on the console every 10 s and at the end. Under torchrun, each
+    rank counts its own envs' episodes, and rank 0 logs those of every rank after each update."""
 
     def __init__(self, writer, args, global_step, total_steps):
         table = "\n".join(f"|{name}|{value}|" for name, value in asdict(args).items())
@@ -449,22 +508,28 @@ class Log:
         self.start_step = global_step
         self.start_time = time.time()
         self.printed = 0.0
-        self.returns = np.zeros(args.num_envs)  # of the episodes under way, and their lengths
-        self.lengths = np.zeros(args.num_envs, dtype=np.int64)
+        self.returns = np.zeros(args.num_envs // rank_and_size()[1])  # of this rank's episodes under way, and lengths
+        self.lengths = np.zeros(args.num_envs // rank_and_size()[1], dtype=np.int64)
+        self.ended = []  # (step, return, length) of the episodes that ended since the last update
         self.recent = deque(maxlen=100)  # the returns of the last 100 episodes
 
     def episodes(self, reward, ended, step):
-        """Add each env's reward to its episode; log the return and length of those that `ended` with it."""
+        """Add each env's reward to its episode; keep the return and length of those that `ended` with it."""
         self.returns += reward
         self.lengths += 1
-        for i in np.flatnonzero(ended):
-            self.recent.append(self.returns[i])
-            self.writer.add_scalar("charts/episodic_return", self.returns[i], step)
-            self.writer.add_scalar("charts/episodic_length", self.lengths[i], step)
+        self.ended += [(step, self.returns[i], self.lengths[i]) for i in np.flatnonzero(ended)]
         self.returns[ended] = 0.0
         self.lengths[ended] = 0
 
     def update(self, step, learning_rate, losses):
+        every_rank = [self.ended] * rank_and_size()[1]
+        if dist.is_initialized():
+            dist.all_gather_object(every_rank, self.ended)
+        for episode_step, episode_return, length in sum(every_rank, []):
+            self.recent.append(episode_return)
+            self.writer.add_scalar("charts/episodic_return", episode_return, episode_step)
+            self.writer.add_scalar("charts/episodic_length", length, episode_step)
+        self.ended = []
         sps = int((step - self.start_step) / (time.time() - self.start_time))
         self.writer.add_scalar("charts/learning_rate", learning_rate, step)
         self.writer.add_scalar("charts/SPS", sps, step)
@@ -484,6 +549,8 @@ FORMAT = "ppo-checkpoint-v1"
 
 def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more):
     # Tensors, numbers and strings, loadable with torch.load(weights_only=True); written, then renamed, atomically.
+    if rank_and_size()[0] > 0:  # torchrun: rank 0 writes it
+        return
     state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "torch_rng_state": torch.get_rng_state()}
     numbers = {"global_step": global_step, "iteration": iteration, **more}
     torch.save({"format": FORMAT, "script": SCRIPT, "args": asdict(args), **state, **numbers}, f"{path}.tmp")
@@ -550,7 +617,18 @@ def check_args(args):
 
 
 def new_run_dir(args):
-    return f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    """Make runs/{env_id}__{exp_name}__{seed}__{time}, or, if a run started in the same second has it, the next free
+    name (...-2, -3, ...): mkdir is atomic, so no two runs share one. Under torchrun, rank 0 makes it for every rank."""
+    base = f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    name = [base]
+    for clash in itertools.count(2) if rank_and_size()[0] == 0 else ():
+        with contextlib.suppress(FileExistsError):  # the name is taken: try the next
+            os.makedirs(name[0])
+            break
+        name[0] = f"{base}-{clash}"
+    if dist.is_initialized():
+        dist.broadcast_object_list(name)
+    return name[0]
 
 
 def start_tracking(args):
@@ -559,7 +637,6 @@ def start_tracking(args):
     import wandb
 
     run = load_checkpoint(args.resume, args)[1] if args.resume else args  # a resumed run: its own hyperparameters
-    run.run_dir = run.run_dir or new_run_dir(args)  # for a new run, run is args: train() writes there too
     name = os.path.basename(os.path.abspath(run.run_dir))
     init = dict(project=args.wandb_project_name, entity=args.wandb_entity, name=name, id=name, config=asdict(run))
     init |= dict(sync_tensorboard=True, save_code=True, resume="allow")
@@ -585,7 +662,16 @@ def main():
     torch.set_num_threads(args.torch_threads)
     if args.eval_checkpoint is not None:
         return evaluate(args)
-    if args.track:  # W&B's run, and its patch of TensorBoard's writer, belong to the process: main() starts them
+    if "WORLD_SIZE" in os.environ:  # torchrun: this process is one of the P ranks of one run (one GPU each, with cuda)
+        if pick_device(args.device).type == "cuda":
+            torch.cuda.set_device(int(os.environ["LOCAL_RANK"]))
+        dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
+        if dist.get_rank() > 0:  # rank 0 speaks for the run; the others' errors still reach stderr
+            sys.stdout = open(os.devnull, "w")
+    if not (args.resume or args.run_dir):  # the run's folder, named once for train() and W&B
+        args.run_dir = new_run_dir(args)
+    # W&B's run, and its patch of TensorBoard's writer, belong to the process: main() starts them (on rank 0)
+    if args.track and rank_and_size()[0] == 0:
         start_tracking(args)
     # A training run owns the process: Ctrl-C and SIGTERM only set the flag that train() reads after each iteration.
     stop = []
@@ -598,6 +684,11 @@ def main():
         sys.exit(130)
     except Diverged as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)
+        sys.exit(1)
+    except RuntimeError as e:  # torchrun: another rank died (gloo's or nccl's error), and this one ends in one line
+        if not (dist.is_initialized() and (isinstance(e, dist.DistError) or "gloo" in str(e))):
+            raise
+        print(f"{SCRIPT}: error: rank {dist.get_rank()} lost another rank: {str(e).splitlines()[0]}", file=sys.stderr)
         sys.exit(1)
 
 

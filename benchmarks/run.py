@@ -56,6 +56,12 @@ class Job:
     progress: int = field(default=0, compare=False)
     env_flag: str | None = "--env-id"
     budget_flag: str = "--total-timesteps"
+    ranks: int = 1  # processes of one run: more than 1 runs it under torchrun
+
+    @property
+    def launcher(self):
+        """How the run's command starts: python, or torchrun with one process a rank on this machine."""
+        return ["python"] if self.ranks == 1 else ["torchrun", "--standalone", f"--nproc-per-node={self.ranks}"]
 
     @property
     def name(self):
@@ -76,12 +82,12 @@ class Job:
     @property
     def identity(self):
         """What makes two runs the same run, wherever their results are kept."""
-        return (self.script, tuple(self.flags), self.env_id, self.seed, self.total_timesteps)
+        return (self.script, tuple(self.flags), self.env_id, self.seed, self.total_timesteps, self.ranks)
 
     def command(self, save_every=None):
         """The command that starts this run from scratch, relative to the repository root."""
         return [
-            "python",
+            *self.launcher,
             self.script,
             *self.flags,
             *([self.env_flag, self.env_id] if self.env_flag else []),
@@ -140,6 +146,7 @@ def make_grid(suite, variants=None, envs=None, seeds=None, total_timesteps=None,
             runs_dir,
             env_flag=spec.env_flag,
             budget_flag=spec.budget_flag,
+            ranks=spec.ranks.get(variant, 1),
         )
         for variant in (variants or spec.variants)
         for env in (envs or spec.envs)
@@ -161,7 +168,9 @@ def check_grid(jobs):
             continue
         seen.add(key)
         module = load_script(job.script)
-        argv = job.command()[2:-2]  # without --run-dir: a run's folder is the runner's, which resumes what it holds
+        argv = job.command()[
+            len(job.launcher) + 1 : -2
+        ]  # without --run-dir: a run's folder is the runner's, which resumes what it holds
         try:
             args = tyro.cli(module.Args, args=argv, console_outputs=False)
         except SystemExit:
@@ -287,8 +296,9 @@ def fmt_time(seconds):
 
 def start_process(cmd, root, log, run_dir):
     """Start a run's command in a session of its own, logging to `log`, and note its pid in the run's folder."""
+    python = [sys.executable, "-m", "torch.distributed.run"] if cmd[0] == "torchrun" else [sys.executable]
     proc = subprocess.Popen(
-        [sys.executable, *cmd[1:]],
+        [*python, *cmd[1:]],
         cwd=root,
         stdout=log,
         stderr=subprocess.STDOUT,
@@ -330,7 +340,7 @@ class RayRun:
         self.job, self.returncode = job, None
         (job.run_dir / "stop").unlink(missing_ok=True)
         cuda = any(flag.startswith("cuda") for flag in job.flags)  # the run asks for a GPU with --device cuda
-        task = ray.remote(num_cpus=1, num_gpus=1 if cuda else 0, max_retries=0)(ray_run)
+        task = ray.remote(num_cpus=job.ranks, num_gpus=job.ranks if cuda else 0, max_retries=0)(ray_run)
         self.ref = task.remote(cmd, str(ROOT), str(job.run_dir / "log.txt"), str(job.run_dir))
 
     def poll(self):
@@ -421,7 +431,7 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                 cmd = job.command(save_every)
                 if resumed:  # the run's own hyperparameters come back from its checkpoint
                     cmd = [
-                        "python",
+                        *job.launcher,
                         job.script,
                         "--resume",
                         str(_rel(job.checkpoint)),

@@ -40,6 +40,7 @@ class Suite:
     env_flag: str | None = "--env-id"  # how the script takes the env; None: the "env" is only the runs' label
     budget_flag: str = "--total-timesteps"  # how the script takes the budget
     report: str = "mujoco"  # the module of benchmarks/reports/ that writes its report.md and README lines
+    ranks: dict[str, int] = field(default_factory=dict)  # variant -> torchrun's processes for one run (else 1)
     in_readme: bool = False  # whether README.md's Results block summarizes it (at its own budget)
 
 
@@ -176,13 +177,17 @@ SUITES = {
     # The paper's §6.3 humanoid showcase (issue 50): Table 4 on Humanoid-v5, the maintained stand-in for
     # RoboschoolHumanoid. 32 actors, T 512, 15 epochs, minibatch 4,096, gamma 0.99, lambda 0.95 (the defaults), the log
     # std annealed from -0.7 to -1.6, and the step size adapted to a KL target the paper does not give (0.01).
+    # table4-2ranks (issue 53): the same run in 2 processes under torchrun, each stepping 16 of the 32 actors, as the
+    # paper's own code ran its actors over MPI; seeds 1 and 2.
     "humanoid": Suite(
-        {"table4": ("ppo_continuous.py", TABLE4)},
+        {"table4": ("ppo_continuous.py", TABLE4), "table4-2ranks": ("ppo_continuous.py", TABLE4)},
         ["Humanoid-v5"],
         [1, 2, 3],
         10_010_624,  # 611 batches of 32 x 512: the first whole batch past 10M steps
         "ppo_continuous.py with the paper's Table 4 (32 actors, T 512, 15 epochs, minibatch 4,096, log std annealed"
         " from -0.7 to -1.6, lr adapted toward KL 0.01)",
+        only={"table4-2ranks": (["Humanoid-v5"], [1, 2])},
+        ranks={"table4-2ranks": 2},
         report="humanoid",
         in_readme=True,
     ),
