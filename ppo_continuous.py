@@ -22,6 +22,7 @@ import math
 import os
 import re
 import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -643,6 +644,14 @@ def check_args(args):
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ValueError(f"{SCRIPT} needs a Box action space and flat observations, not {env.action_space}")
+    if args.capture_video:  # render a frame in a child process: filming that cannot start stops here, in one line
+        gl = os.environ.get("MUJOCO_GL", "egl")  # make_env's choice
+        frame = f"import gymnasium as g; e = g.make({args.env_id!r}, render_mode='rgb_array'); e.reset(); e.render()"
+        child = subprocess.run([sys.executable, "-c", frame], env={**os.environ, "MUJOCO_GL": gl}, capture_output=True)
+        if child.returncode:
+            fix = "install EGL (Debian: apt install libegl1 libgl1-mesa-dri) or set MUJOCO_GL=osmesa or glfw"
+            reason = child.stderr.decode().strip().splitlines()[-1]
+            raise ValueError(f"--capture-video cannot render with MUJOCO_GL={gl} ({reason}): {fix}")
     run_dir = args.run_dir
     if run_dir is None or args.eval_checkpoint:  # train() makes the default one; evaluation writes only videos
         return

@@ -13,7 +13,9 @@ et al. §2). The gold reward shows what the reward model cannot: whether a risin
     python ppo_rlhf.py --advantage grpo    # GRPO's group-relative advantage in place of the critic and GAE
 """
 
+import contextlib
 import copy
+import itertools
 import math
 import os
 import random
@@ -35,7 +37,7 @@ SCRIPT = os.path.basename(__file__)
 class Args:
     exp_name: str = SCRIPT[: -len(".py")]  # the name of this experiment, part of the run directory's name
     seed: int = 1  # seed of the grammar's samples and of torch: on the CPU, one seed gives one run
-    device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto is the CPU, fastest for this size)
+    device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto: cuda when there is one)
     compile: bool = False  # apply torch.compile to the PPO minibatch update
     torch_threads: int = 1  # torch CPU threads
     run_dir: str | None = None  # where logs and checkpoints go (None: runs/reviews__{exp_name}__{seed}__{time})
@@ -616,7 +618,7 @@ def train(args, stop=()):
 
     checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
     run_dir = args.run_dir or new_run_dir(args)
-    device = torch.device("cpu" if args.device == "auto" else args.device)
+    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device)
     if checkpoint:  # a resumed stage 3: stages 1 and 2 are in its checkpoint
         sft = new_model(args, device, checkpoint["reference"])
         reward_model = new_model(args, device, checkpoint["reward_model"])
@@ -713,7 +715,13 @@ def check_args(args):
 
 
 def new_run_dir(args):
-    return f"runs/reviews__{args.exp_name}__{args.seed}__{int(time.time())}"
+    """Make runs/reviews__{exp_name}__{seed}__{time}, or, if a run started in the same second has it, the next free
+    name (...-2, -3, ...): mkdir is atomic, so no two runs share one."""
+    base = f"runs/reviews__{args.exp_name}__{args.seed}__{int(time.time())}"
+    for name in itertools.chain([base], (f"{base}-{clash}" for clash in itertools.count(2))):
+        with contextlib.suppress(FileExistsError):  # the name is taken: try the next
+            os.makedirs(name)
+            return name
 
 
 def start_tracking(args):

@@ -4,7 +4,7 @@
     python benchmarks/throughput.py                 # all three scripts: MuJoCo, then Atari, about 10 minutes
     python benchmarks/throughput.py --suite mujoco  # ppo_continuous.py and ppo_kl_penalty.py on Hopper, about 5 minutes
     python benchmarks/throughput.py --suite atari   # ppo_atari.py on Breakout, about 5 minutes
-    python benchmarks/throughput.py --suite humanoid  # ppo_continuous.py with the paper's Table 4, about 15 minutes
+    python benchmarks/throughput.py --suite humanoid  # ppo_continuous.py with the paper's Table 4, about 20 minutes
 
 Every measurement runs in a fresh process, one at a time, and the cases are repeated in
 alternation (ours, peer, env, ours, peer, env, ...) so that a slow spell of the machine hits all of
@@ -19,7 +19,8 @@ first iteration is reported beside it: for `--compile`, less the eager script's,
 compilation's cost.
 - ours: `train(args)` of the script, rollout + update + TensorBoard logging + checkpointing, eager
   and with `--compile`, with the torch threads that the script's `main()` sets (`--torch-threads`); the
-  iteration ends are the wall times of its `charts/SPS` events;
+  iteration ends are the wall times of its `charts/SPS` events. A case that starts with `torchrun --nproc-per-node P`
+  is the same `train(args)` in P processes of one run (issue 53), timed by rank 0, whose steps count every rank's;
 - the peers: `model.learn()` of Stable-Baselines3's PPO with the same hyperparameters, network and
   normalization (VecNormalize), once with torch's default threads and once with 1 thread; the
   iteration ends are its rollout ends;
@@ -31,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
@@ -44,6 +46,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import load_script, replace_between  # noqa: E402
 from results import commit, machine, versions  # noqa: E402
+from suites import TABLE4  # noqa: E402
 
 # A suite: its env, our scripts, and their peers.
 # Each run also measures the env alone.
@@ -58,7 +61,11 @@ SUITES = {
     "atari": {
         "env_id": "BreakoutNoFrameskip-v4",
         "steps": 6144,  # 6 rollouts of 8 x 128
-        "ours": ["ppo_atari.py", "ppo_atari.py --compile"],
+        "ours": [
+            "ppo_atari.py",
+            "ppo_atari.py --compile",
+            "torchrun --nproc-per-node 2 ppo_atari.py --torch-threads 1",
+        ],
         "peers": ["sb3_ppo_atari"],
         "settings": "8 envs, T=128, K=3 epochs, minibatch 256, Nature CNN, lr and clip annealed",
     },
@@ -67,12 +74,12 @@ SUITES = {
     "humanoid": {
         "env_id": "Humanoid-v5",
         "steps": 49152,  # 3 rollouts of 32 x 512
-        "flags": "--num-envs 32 --num-steps 512 --update-epochs 15 --minibatch-size 4096 --anneal-logstd -0.7 -1.6"
-        " --no-anneal-lr --lr-target-kl 0.01",
+        "flags": shlex.join(TABLE4),  # the humanoid suite's flags, benchmarks/suites.py
         "ours": [
             "ppo_continuous.py",
             "ppo_continuous.py --compile",
             "ppo_continuous.py --num-envs 128 --num-steps 128",
+            "torchrun --nproc-per-node 2 ppo_continuous.py",
         ],
         "peers": ["sb3_ppo_humanoid", "sb3_ppo_humanoid_1thread"],
         "settings": "Table 4: 32 envs, T=512, K=15 epochs, minibatch 4,096, 64x64 tanh MLPs, log std annealed (SB3:"
@@ -92,11 +99,14 @@ def steady_rate(start, ends):
 
 def measure_ours(case, env_id, steps, suite_flags=""):
     import torch
+    import torch.distributed as dist
     import tyro
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     script, *flags = case.split()
     module = load_script(script)
+    if "WORLD_SIZE" in os.environ:  # a torchrun case: this process is one rank, as the script's main() makes it
+        dist.init_process_group("gloo")
     with tempfile.TemporaryDirectory() as tmp:
         args = tyro.cli(
             module.Args,
@@ -106,6 +116,8 @@ def measure_ours(case, env_id, steps, suite_flags=""):
         torch.set_num_threads(args.torch_threads)  # as the script's main() sets the process up before train()
         start = time.time()
         module.train(args)
+        if dist.is_initialized() and dist.get_rank() > 0:
+            return None  # rank 0 keeps the run's record, and reports
         acc = EventAccumulator(tmp)
         acc.Reload()
         return steady_rate(start, [(e.step, e.wall_time) for e in acc.Scalars("charts/SPS")])
@@ -250,6 +262,8 @@ def run_worker(case, env_id, steps, suite):
     suite_flags = SUITES[suite].get("flags", "")
     if case.startswith("ppo_"):
         sps = measure_ours(case, env_id, steps, suite_flags)
+        if sps is None:  # a rank > 0 of a torchrun case
+            return
     elif case.startswith("sb3_ppo_humanoid"):
         # Table 4: SB3 has no KL-adapted lr nor log std schedule: a constant lr, and the schedule's first log std
         table4 = dict(n_envs=32, n_steps=512, batch_size=4096, n_epochs=15, anneal_lr=False, log_std_init=-0.7)
@@ -275,7 +289,11 @@ def run_worker(case, env_id, steps, suite):
 
 
 def measure(case, env_id, steps, suite):
-    cmd = [sys.executable, __file__, "--worker", case, "--env-id", env_id, "--steps", str(steps), "--suite", suite]
+    launcher = [sys.executable]
+    if case.startswith("torchrun"):  # torchrun --nproc-per-node P <case>: P ranks of one run on this machine
+        _, nproc, processes, case = case.split(maxsplit=3)
+        launcher += ["-m", "torch.distributed.run", "--standalone", f"{nproc}={processes}"]
+    cmd = [*launcher, __file__, "--worker", case, "--env-id", env_id, "--steps", str(steps), "--suite", suite]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     if proc.returncode != 0:
         raise SystemExit(f"{case} failed:\n{proc.stderr[-3000:]}")
@@ -323,7 +341,7 @@ def measure_suite(name, steps, repeats):
     """Measure one suite's cases in alternation; return its markdown table."""
     suite = SUITES[name]
     env_id = suite["env_id"]
-    ours = [case for case in suite["ours"] if (ROOT / case.split()[0]).exists()]
+    ours = [case for case in suite["ours"] if (ROOT / next(w for w in case.split() if w.endswith(".py"))).exists()]
     cases = [*ours, *suite["peers"], "env"]
     load_at_start = os.getloadavg()[0]
     samples, firsts = {case: [] for case in cases}, {case: [] for case in cases}
@@ -358,6 +376,9 @@ def measure_suite(name, steps, repeats):
         )
     for case in ours:
         eager = case.replace(" --compile", "")
+        if case.startswith("torchrun"):
+            one = next(w for w in case.split() if w.endswith(".py"))
+            lines += ["", f"- `{case}`: {median[case] / median[one]:.2f}x `{one}` in one process (medians)."]
         if case != eager and first[eager] is not None:
             lines += [
                 "",

@@ -66,6 +66,14 @@ def test_throughput_humanoid_case_measures_ours_sb3_and_the_envs_with_table4(cap
     assert sps > 0 and first > 0
     throughput.run_worker("env", "Humanoid-v5", 64, "humanoid")  # the 32 envs of ppo_continuous.py, alone
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["sps"] > 0
+    # The 2-rank case: the same train() in two processes under torchrun, timed by rank 0 (issue 53).
+    sps, first = throughput.measure(
+        "torchrun --nproc-per-node 2 ppo_continuous.py --num-steps 8 --minibatch-size 128",
+        "Humanoid-v5",
+        768,
+        "humanoid",
+    )
+    assert sps > 0 and first > 0
     pytest.importorskip("stable_baselines3")  # benchmarks/requirements.txt; CI installs only ray from it
     tiny = dict(n_envs=32, n_steps=8, batch_size=128, n_epochs=1)
     sps, first = throughput.measure_sb3_ppo_mujoco("Humanoid-v5", 768, threads=1, **tiny)

@@ -29,17 +29,24 @@ def readme_lines(folder, results, reference, full):
 
 
 def humanoid_table(runs, reference, variants, results):
-    """Per variant, the mean ± std over seeds of the last 100 episodes and of every episode of training; then the
-    random policy and the published figures for PPO on gymnasium's Humanoid, each at its own budget and settings."""
+    """Per variant, the mean ± std over seeds of the last 100 episodes and of every episode of training, and the wall
+    time of a run (table4-2ranks: the same run in 2 processes under torchrun); then the random policy and the published
+    figures for PPO on gymnasium's Humanoid, each at its own budget and settings."""
     by_env = group(runs)
-    lines = ["| env | setting | steps | last 100 (n) | all training (n) |", "|---|---|---|---|---|"]
+    lines = [
+        "| env | setting | steps | last 100 (n) | all training (n) | wall time per run |",
+        "|---|---|---|---|---|---|",
+    ]
     for env in sorted(by_env):
         for v in [v for v in variants if v in by_env[env]]:
             last = [r.score for r in by_env[env][v]]
             whole = [mean_return(r.rows) for r in by_env[env][v]]
             steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in by_env[env][v]}))
             n = len(last)
-            lines.append(f"| {env} | {v} | {steps} | {fmt(*mean_std(last))} ({n}) | {fmt(*mean_std(whole))} ({n}) |")
+            wall = ", ".join(f"{float(r.meta['wall_time_s']) / 60:.0f} min" for r in by_env[env][v])
+            lines.append(
+                f"| {env} | {v} | {steps} | {fmt(*mean_std(last))} ({n}) | {fmt(*mean_std(whole))} ({n}) | {wall} |"
+            )
         rand = random_score(env, results)
         lines += ["", f"The random policy on {env}: {fmt(rand) if rand is not None else 'not measured'}."]
         for column, title, setting in COLUMNS["humanoid"]:
