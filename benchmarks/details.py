@@ -57,11 +57,15 @@ def cited_details(line):
 
 
 def details_block(root=ROOT):
-    lines = [DETAILS_START, "", "| detail | what | where |", "|---|---|---|"]
+    """The README's table of the details, two to a row, each linked to the line that cites it."""
+    cells = []
     for family, number, what in DETAILS:
         script = "ppo_atari.py" if family == "atari" else "ppo_continuous.py"
         source = (root / script).read_text().splitlines()
         start = source.index("# THE MATH")
         line = next(i + 1 for i in range(start, len(source)) if (family, number) in cited_details(source[i]))
-        lines.append(f"| {family} {number} | {what} | [{script} L{line}]({script}#L{line}) |")
+        cells.append(f"| {family} {number} | {what} | [{script} L{line}]({script}#L{line}) ")
+    cells += ["| | | "] * (len(cells) % 2)
+    lines = [DETAILS_START, "", "| detail | what | where " * 2 + "|", "|---|---|---" * 2 + "|"]
+    lines += [cells[i] + cells[i + 1] + "|" for i in range(0, len(cells), 2)]
     return "\n".join(lines + ["", DETAILS_END])

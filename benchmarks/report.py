@@ -94,7 +94,7 @@ def main():
         update_readme(ROOT / "benchmarks" / "README.md", readme_block(full=True))
         update_readme(ROOT / "benchmarks" / "README.md", cost_block(), COST_START, COST_END)
         update_readme(ROOT / "README.md", details_block(), DETAILS_START, DETAILS_END)
-        update_readme(ROOT / "README.md", rlhf_block(), RLHF_START, RLHF_END)
+        update_readme(ROOT / "benchmarks" / "README.md", rlhf_block(), RLHF_START, RLHF_END)
         print("updated the Results blocks of README.md and benchmarks/README.md")
 
 

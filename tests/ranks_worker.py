@@ -58,7 +58,7 @@ def minibatches(rank, size, epoch):
 def update(module, script, agent, batch, rank, size, indices):
     """K epochs of the script's minibatch_loss and gradient_step; `indices(epoch)` gives the minibatches."""
     args = module.Args(ent_coef=0.01)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=torch.tensor(1e-4), eps=1e-5)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-4, eps=1e-5)
     extra = (agent.actor_logstd.detach().clone(), torch.tensor(0.5)) if script == "ppo_kl_penalty.py" else ()
     for epoch in range(K):
         for mb_inds in indices(epoch):

@@ -14,14 +14,13 @@ from details import cited_details  # noqa: E402
 
 
 def test_readme_is_short():
-    # About 250: the RLHF section (issues 29, 40: its GRPO arm and what the suite shows) and Figure 3 (issue 41);
-    # then Table 4's command, the humanoid's result with a frame of its video, --track and `uv run` (issues 48, 50).
-    assert len(README.splitlines()) <= 285
+    # Under 260 (issue 55): the long generated blocks live in benchmarks/README.md and the suites' reports, a link away.
+    assert len(README.splitlines()) < 260
 
 
 def test_every_detail_links_to_a_line_that_cites_it():
     rows = re.findall(
-        r"^\| (core|continuous|atari) (\d+) \|.*\[(ppo_\w+\.py L\d+)\]\((ppo_\w+\.py)#L(\d+)\) \|$", README, re.M
+        r"\| (core|continuous|atari) (\d+) \| [^|]* \| \[(ppo_\w+\.py L\d+)\]\((ppo_\w+\.py)#L(\d+)\) ", README
     )
     expected = (
         {("core", n) for n in range(1, 14)}

@@ -277,7 +277,7 @@ def rlhf_block(results=RESULTS):
         RLHF_START,
         "",
         f"**`rlhf`: {len(runs)} runs (seeds {seeds}; {steps} responses each)**"
-        " ([report, plot and samples](benchmarks/results/rlhf/report.md)): each run's mean over the last tenth of"
+        " ([report, plot and samples](results/rlhf/report.md)): each run's mean over the last tenth of"
         " training, as the mean ± std over seeds:",
         "",
         "| setting | " + " | ".join(heading for _, heading in columns) + " |",
