@@ -13,6 +13,7 @@ detail N" (of 9). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes
     python ppo_atari.py                                  # Breakout, 10M steps (40M frames): a job for a GPU
     python ppo_atari.py --env-id PongNoFrameskip-v4 --total-timesteps 1000000
     python ppo_atari.py --compile                        # the same algorithm, compiled by torch.compile
+    torchrun --standalone --nproc-per-node 2 ppo_atari.py --torch-threads 1   # one run in 2 processes, 4 envs each
     python ppo_atari.py --help                           # every flag, with its default
 """
 

@@ -12,6 +12,7 @@ their 13) and "continuous detail N" (of their 9 for continuous actions).
 
     python ppo_continuous.py                          # Hopper-v5, 1M steps
     python ppo_continuous.py --compile                # the same algorithm, compiled by torch.compile
+    torchrun --standalone --nproc-per-node 2 ppo_continuous.py --num-envs 2   # one run in 2 processes, 1 env each
     python ppo_continuous.py --help                   # every flag, with its default
 """
 

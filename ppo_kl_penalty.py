@@ -15,6 +15,7 @@ N" (of their 9 for continuous actions).
     python ppo_kl_penalty.py --kl-target 0.003                   # adaptive KL, d_targ = 0.003
     python ppo_kl_penalty.py --init-beta 3 --no-adaptive-beta    # fixed KL, beta = 3
     python ppo_kl_penalty.py --init-beta 0 --no-adaptive-beta    # no clipping or penalty: L^CPI
+    torchrun --standalone --nproc-per-node 2 ppo_kl_penalty.py --num-envs 2    # one run in 2 processes
 """
 
 import atexit

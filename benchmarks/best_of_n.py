@@ -1,6 +1,8 @@
 """Best-of-N from pi_SFT (Gao et al. 2022, arXiv:2210.10760, §2): the frontier of gold against KL that needs no
 optimizer. For each prompt, N responses of pi_SFT; the one the reward model scores highest is kept. Its KL to pi_SFT
-is known in closed form, log N - (N - 1) / N nats, so the curve sits on the same axes as PPO's and DPO's runs.
+is at most log N - (N - 1) / N nats (Beirami et al. 2024 prove the bound; it is exact for a distribution without
+atoms, and here, where pi_SFT repeats a few responses, it is nearly tight), so the curve sits on the same axes as PPO's
+and DPO's runs.
 
     python benchmarks/best_of_n.py benchmarks/runs/rlhf/reviews__beta0.05__seed1    # stages 1-2 of that run's seed
 
@@ -29,8 +31,21 @@ NS = [1, 2, 4, 8, 16, 32, 64]
 
 
 def analytic_kl(n):
-    """KL[best-of-n || pi_SFT] = log n - (n - 1) / n (Stiennon et al. 2020, Gao et al. 2022), in nats."""
+    """log n - (n - 1) / n, in nats: the KL[best-of-n || pi_SFT] that Stiennon et al. 2020 and Gao et al. 2022 give,
+    which Beirami et al. 2024 (arXiv:2401.01879) prove is an upper bound, reached when no response has a mass."""
     return math.log(n) - (n - 1) / n
+
+
+def exact_kl(probs, scores, n):
+    """KL[best-of-n || p] of a discrete distribution p over responses with these scores, all distinct: the kept
+    response is y with probability F(y)^n - F(y-)^n, F the probability of a score at most y's."""
+    order = sorted(range(len(probs)), key=lambda i: scores[i])
+    kl, below = 0.0, 0.0
+    for i in order:
+        kept = (below + probs[i]) ** n - below**n
+        kl += kept * math.log(kept / probs[i]) if kept > 0 else 0.0
+        below += probs[i]
+    return kl
 
 
 def best_of_n(run_dir, prompts=256, ns=NS, seed=0):

@@ -543,3 +543,24 @@ def test_the_readmes_example_suite_is_one_entry_and_one_module(tmp_path, monkeyp
     assert "### `stepsize`: 6 runs (seeds 1, 2, 3; 100,000 steps each)" in report.readme_block(
         results=results, reference={}, full=True
     )
+
+
+@pytest.mark.parametrize("form", ["bon", "rl"])
+def test_gaos_forms_are_fitted_back_from_points_of_known_alpha_and_beta(form):
+    """Issue 54, item 3: fit_gao recovers alpha and beta from points on R(d) = d (alpha - beta d) or d (alpha - beta
+    log d), with noise, and its peak is where a fine grid of the true curve peaks."""
+    import numpy as np
+
+    alpha, beta = (3.0, 0.8) if form == "bon" else (1.2, 0.9)
+    d = np.linspace(0.05, 6.0, 40)
+    curve = {"bon": lambda x: x * (alpha - beta * x), "rl": lambda x: x * (alpha - beta * np.log(x))}[form]
+    noisy = curve(d) + np.random.default_rng(0).normal(0, 0.02, d.size)
+    fitted_alpha, fitted_beta, peak, at_peak = rlhf.fit_gao(d, noisy, form)
+    assert fitted_alpha == pytest.approx(alpha, abs=0.03) and fitted_beta == pytest.approx(beta, abs=0.03)
+    grid = np.linspace(0.01, 20.0, 200_001)
+    exact_alpha, exact_beta, exact_peak, exact_at_peak = rlhf.fit_gao(d, curve(d), form)
+    assert exact_peak == pytest.approx(grid[np.argmax(curve(grid))], abs=1e-3)
+    assert exact_at_peak == pytest.approx(curve(grid).max(), rel=1e-6)
+    assert peak == pytest.approx(exact_peak, rel=0.1) and at_peak == pytest.approx(exact_at_peak, rel=0.1)
+    rising = rlhf.fit_gao(d, d * 2.0, form)  # no fall in the data: no peak to report
+    assert rising[3] == float("inf") or rising[2] > d.max() * 5

@@ -105,3 +105,67 @@ def test_every_loss_reads_only_the_masked_tokens(recorded):
         advantages = call["args"][1]
         mask = call["args"][3]
         assert torch.all(advantages[mask == 0] == 0), "the advantages of tokens after an EOS are zero"
+
+
+def record_run(path, names, **overrides):
+    """A tiny run of train() in this process, with each call of the named functions recorded (args and result)."""
+    args = rlhf_tiny_args(path, **overrides)
+    calls = {name: [] for name in names}
+    patch = pytest.MonkeyPatch()
+    for name, log in calls.items():
+        real = getattr(rlhf, name)
+
+        def wrapper(*a, real=real, log=log, **kw):
+            out = real(*a, **kw)
+            log.append({"args": [x.detach().clone() if torch.is_tensor(x) else x for x in a], "out": out})
+            return out
+
+        patch.setattr(rlhf, name, wrapper)
+    try:
+        rlhf.train(args)
+    finally:
+        patch.undo()
+    return args, calls
+
+
+def baseline_by_loop(rewards, group_size, kind):
+    """Each response's summed reward minus its group's mean (dr-grpo) or the mean of the others (rloo): plain loops."""
+    totals = rewards.sum(1).tolist()
+    advantages = []
+    for start in range(0, len(totals), group_size):
+        group = totals[start : start + group_size]
+        for i, total in enumerate(group):
+            others = group[:i] + group[i + 1 :]
+            baseline = sum(others) / len(others) if kind == "rloo" else sum(group) / len(group)
+            advantages.append(total - baseline)
+    return torch.tensor(advantages)
+
+
+@pytest.mark.parametrize("kind", ["dr-grpo", "rloo"])
+def test_each_group_baseline_is_what_its_run_feeds_the_loss(kind, tmp_path):
+    """Issue 54, item 7: a run with --advantage dr-grpo or rloo learns from its own advantage, not GRPO's."""
+    args, calls = record_run(tmp_path, ["rollout", "compute_rewards", "clipped_surrogate_loss"], advantage=kind)
+    fed = torch.cat([call["args"][1].flatten() for call in calls["clipped_surrogate_loss"]])
+    for rollout, rewards in zip(calls["rollout"], calls["compute_rewards"], strict=True):
+        batch, mask = rollout["out"], rewards["args"][3]
+        expected = baseline_by_loop(rewards["out"], args.group_size, kind)[:, None] * mask
+        torch.testing.assert_close(batch["advantages"], expected)  # what the update's minibatches are cut from
+        grpo = rlhf.group_advantages(rewards["out"], mask, args.group_size, "grpo")
+        assert not torch.allclose(batch["advantages"], grpo), "the check would not see GRPO's advantage"
+    # and the loss got those advantages: every value it saw is one of the batches' (the minibatches are their rows)
+    batches = torch.cat([rollout["out"]["advantages"].flatten() for rollout in calls["rollout"]])
+    assert torch.isin(fed, batches).all()
+
+
+def test_the_adaptive_kl_run_feeds_its_rewards_the_controllers_beta(tmp_path):
+    """Issue 54, item 7: with --adaptive-kl, each iteration's rewards use the beta that Ziegler et al.'s controller
+    made from the previous iteration's KL to pi_SFT, starting from --kl-coef."""
+    args, calls = record_run(tmp_path, ["compute_rewards"], adaptive_kl=True, kl_coef=0.05, kl_target=0.5)
+    betas = [call["args"][4] for call in calls["compute_rewards"]]
+    assert betas[0] == args.kl_coef
+    for i, call in enumerate(calls["compute_rewards"][:-1]):
+        _, logprobs, ref_logprobs, mask, beta = call["args"]
+        kl = ((logprobs - ref_logprobs) * mask).sum(1).mean().item()  # the KL per response, in nats
+        error = min(max(kl / args.kl_target - 1.0, -0.2), 0.2)
+        assert betas[i + 1] == pytest.approx(beta * (1 + error * args.batch_size / args.kl_horizon), rel=1e-5)
+    assert len(set(betas)) == len(betas), "beta moves every iteration"

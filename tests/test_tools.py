@@ -98,3 +98,25 @@ def test_best_of_n_keeps_the_rm_favourite_of_n_with_its_analytic_kl(tmp_path):
     assert scores[0] <= scores[1] <= scores[2], "the best of more responses (nested: the first N) scores no lower"
     assert all(row[4] + row[5] + row[6] == pytest.approx(1.0) for row in rows), "each kept response has one form"
     assert all(math.isnan(row[7]) or 0 <= row[7] <= 1 for row in rows), "the RM's accuracy on the kept responses"
+
+
+def test_best_of_ns_closed_form_kl_is_an_upper_bound_measured_by_enumeration():
+    """Issue 54, item 5: on a small discrete distribution, the KL of best-of-n counted over every n-tuple of draws is
+    exact_kl's, at most log n - (n - 1) / n, and near it when no response has much mass."""
+    import itertools
+
+    import best_of_n
+
+    probs = [0.4, 0.3, 0.2, 0.1]
+    scores = [0.5, -1.0, 2.0, 0.1]
+    for n in (1, 2, 3, 4):
+        kept = [0.0] * len(probs)
+        for draw in itertools.product(range(len(probs)), repeat=n):
+            weight = math.prod(probs[i] for i in draw)
+            kept[max(draw, key=lambda i: scores[i])] += weight
+        by_enumeration = sum(q * math.log(q / p) for q, p in zip(kept, probs, strict=True) if q > 0)
+        assert best_of_n.exact_kl(probs, scores, n) == pytest.approx(by_enumeration, abs=1e-12)
+        assert by_enumeration <= best_of_n.analytic_kl(n) + 1e-12
+    assert best_of_n.exact_kl(probs, scores, 4) < best_of_n.analytic_kl(4) - 0.05  # heavy atoms: far below the bound
+    fine = [1 / 10_000] * 10_000  # no response with much mass: the bound is nearly reached
+    assert best_of_n.exact_kl(fine, list(range(10_000)), 64) == pytest.approx(best_of_n.analytic_kl(64), abs=2e-3)

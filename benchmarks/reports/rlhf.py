@@ -34,6 +34,24 @@ BLIND_SPOT = (
 )
 
 
+def fit_gao(d, gain, form):
+    """Gao et al. 2022's functional forms of the gold gain over the initial policy against d = sqrt(KL(pi || pi_init)),
+    fitted by least squares (both are linear in alpha and beta): best-of-N, R(d) = d (alpha - beta d), and RL,
+    R(d) = d (alpha - beta log d). Returns alpha, beta, the peak d* (where dR/dd = 0) and the gain there, R(d*):
+    for "bon", d* = alpha / (2 beta) and R* = alpha^2 / (4 beta); for "rl", d* = exp(alpha / beta - 1) and R* = beta d*.
+    With beta <= 0 the curve has no peak: d* and R* are inf."""
+    import numpy as np
+
+    d = np.asarray(d, dtype=float)
+    shape = {"bon": d * d, "rl": d * np.log(np.where(d > 0, d, 1.0))}[form]
+    (alpha, beta), *_ = np.linalg.lstsq(np.stack([d, -shape], 1), np.asarray(gain, dtype=float), rcond=None)
+    if beta <= 0:
+        return float(alpha), float(beta), float("inf"), float("inf")
+    with np.errstate(over="ignore"):  # a peak past any float is no peak: inf
+        peak = alpha / (2 * beta) if form == "bon" else float(np.exp(alpha / beta - 1.0))
+    return float(alpha), float(beta), float(peak), float(alpha**2 / (4 * beta) if form == "bon" else beta * peak)
+
+
 def tenths(run, name):
     """The mean of a run's rlhf/<name> over each tenth of its iterations, in order, counted from the end: the last
     is the mean of the last tenth, as in report.md."""
@@ -77,7 +95,7 @@ def best_of_n_lines(best):
     import numpy as np
 
     names = [(n, h) for n, h in RLHF_COLUMNS if n in BEST_OF_N[2:-1]]
-    names = [("kl", "KL to pi_SFT (nats, analytic)"), *names, ("rm_accuracy", "RM accuracy on the kept responses")]
+    names = [("kl", "KL to pi_SFT (nats, at most)"), *names, ("rm_accuracy", "RM accuracy on the kept responses")]
     lines = ["| N | " + " | ".join(heading for _, heading in names) + " |", "|---" * (len(names) + 1) + "|"]
     tables = [table for _, table in best.values()]
     for i, n in enumerate(tables[0][:, 0]):
@@ -185,7 +203,7 @@ def rlhf_report(folder, runs):
 
 def plot_rlhf(folder, series, variants, best=None):
     """<folder>/curves/reviews.png: per setting, the mean over seeds of the RM and gold scores against sqrt(KL); and
-    best-of-N's, N = 1 ... 64, at its analytic KL."""
+    best-of-N's, N = 1 ... 64, at its closed-form KL, an upper bound."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -329,7 +347,7 @@ def rlhf_block(results=RESULTS):
         gold, kl = mean[:, BEST_OF_N.index("gold_score")], mean[:, BEST_OF_N.index("kl")]
         lines.append(
             f"- **Best-of-N** from π_SFT, the frontier no optimizer is needed for, reached gold {gold[-1]:.2f} at N ="
-            f" {mean[-1, 0]:.0f} (KL {kl[-1]:.2f} nats, analytic; {gold[0]:.2f} at N = 1), with the reward models"
+            f" {mean[-1, 0]:.0f} (KL at most {kl[-1]:.2f} nats; {gold[0]:.2f} at N = 1), with the reward models"
             f" of seeds {', '.join(map(str, sorted(best)))}."
         )
     adaptive = [v for v, (_, flags) in SUITES["rlhf"].variants.items() if flags == ["--adaptive-kl"] and v in last]
