@@ -18,7 +18,6 @@ from reports import scores
 from reports.base import MUJOCO_VERSIONS, SCORE_RULE, ordered_variants, suite_name, suite_variants
 from reports.stats import group
 from results import RESULTS, load_runs, random_score
-from run import make_grid
 from suites import COLUMNS, SUITES, TABLE1_ENVS
 
 ORDER = 1  # where its suites stand in the READMEs' Results block: by ORDER, then by folder name
@@ -277,12 +276,13 @@ def cost_block(results=RESULTS):
         for r in load_runs(Path(results) / folder)
     ]
     minutes = [float(r.meta["wall_time_s"]) / 60 for r in runs if "wall_time_s" in r.meta]
-    full = make_grid("table1", results_root=results)  # the paper's 7 envs
-    ours = make_grid("table1", envs=TABLE1_ENVS, results_root=results)
+    spec = SUITES["table1"]
+    full = [(env, variant, seed) for variant in spec.variants for env in spec.envs for seed in spec.seeds]  # 7 envs
+    ours = [(env, variant, seed) for env, variant, seed in full if env in TABLE1_ENVS]
     lines = [COST_START, ""]
     if minutes:
         per_run = statistics.mean(minutes)
-        todo = sum(not job.csv.exists() for job in ours)
+        todo = sum(not (Path(results) / "table1" / f"{e}__{v}__seed{s}.csv").exists() for e, v, s in ours)
         lines += [
             f"A 1M-step MuJoCo run took {per_run:.0f} min of wall time on one core here, on average over"
             f" {len(minutes)} runs. Table 1 as the paper ran it, {len(full)} runs"
