@@ -9,11 +9,12 @@ import pytest
 import torch
 from conftest import ONE_THREAD, ROOT, TINY, train_tiny
 
-# Every process sees the same second: int(time.time()) stays put, while time still advances (a millionth as fast), so
-# that rates and ETAs stay finite. Python imports this module at startup from PYTHONPATH.
+# Every process sees the same second: int(time.time()) stays put for 500 s, while time still advances (a thousandth
+# as fast, still far above float's resolution), so that rates and ETAs stay finite. Python imports this module at
+# startup from PYTHONPATH.
 FROZEN_CLOCK = """import time
 _real, _start = time.time, time.time()
-time.time = lambda: 1_800_000_000.25 + (_real() - _start) * 1e-6
+time.time = lambda: 1_800_000_000.25 + (_real() - _start) * 1e-3
 """
 
 
