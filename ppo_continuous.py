@@ -741,6 +741,9 @@ def main():
             raise
         print(f"{SCRIPT}: error: rank {dist.get_rank()} lost another rank: {str(e).splitlines()[0]}", file=sys.stderr)
         sys.exit(1)
+    finally:
+        if dist.is_initialized():  # torchrun: leave the group before exiting, which gloo's threads need
+            dist.destroy_process_group()
 
 
 if __name__ == "__main__":

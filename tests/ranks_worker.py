@@ -10,6 +10,7 @@ RunningMeanStd and merges them. `main` runs the script's main() and keeps the ag
 each rank's weights (and statistics) to OUT.rank<r>.pt.
 """
 
+import os
 import sys
 from pathlib import Path
 
@@ -107,7 +108,7 @@ def main():
             code = 0
         except SystemExit as e:
             code = e.code
-        rank = dist.get_rank()
+        rank = int(os.environ["RANK"])  # main() has left the process group
         result = {"agent": agents[-1].state_dict(), "exit": code, "episodes": sum(episodes)}
         torch.save(result, f"{out}.rank{rank}.pt")
         sys.exit(code)
