@@ -14,9 +14,16 @@ rlhf = load_script("ppo_rlhf.py")
 def recorded(tmp_path_factory):
     # Responses of at most 8 tokens, so that some never reach their EOS; a beta that a dropped coefficient would show.
     path = tmp_path_factory.mktemp("rlhf")
-    args = rlhf_tiny_args(path, response_length=8, kl_coef=0.3, no_eos_score=-2.5)
-    run_dir = path / "run"
-    calls = {"rollout": [], "compute_rewards": [], "compute_gae": [], "clipped_surrogate_loss": [], "value_loss": []}
+    names = ["rollout", "compute_rewards", "compute_gae", "clipped_surrogate_loss", "value_loss"]
+    args, calls = record_run(path, names, response_length=8, kl_coef=0.3, no_eos_score=-2.5)
+    checkpoint = torch.load(path / "run" / "checkpoint.pt", weights_only=True)
+    return args, calls, checkpoint
+
+
+def record_run(path, names, **overrides):
+    """A tiny run of train() in this process, with each call of the named functions recorded (args and result)."""
+    args = rlhf_tiny_args(path, **overrides)
+    calls = {name: [] for name in names}
     patch = pytest.MonkeyPatch()
     for name, log in calls.items():
         real = getattr(rlhf, name)
@@ -31,8 +38,7 @@ def recorded(tmp_path_factory):
         rlhf.train(args)
     finally:
         patch.undo()
-    checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
-    return args, calls, checkpoint
+    return args, calls
 
 
 def first_eos_mask(responses):
@@ -105,27 +111,6 @@ def test_every_loss_reads_only_the_masked_tokens(recorded):
         advantages = call["args"][1]
         mask = call["args"][3]
         assert torch.all(advantages[mask == 0] == 0), "the advantages of tokens after an EOS are zero"
-
-
-def record_run(path, names, **overrides):
-    """A tiny run of train() in this process, with each call of the named functions recorded (args and result)."""
-    args = rlhf_tiny_args(path, **overrides)
-    calls = {name: [] for name in names}
-    patch = pytest.MonkeyPatch()
-    for name, log in calls.items():
-        real = getattr(rlhf, name)
-
-        def wrapper(*a, real=real, log=log, **kw):
-            out = real(*a, **kw)
-            log.append({"args": [x.detach().clone() if torch.is_tensor(x) else x for x in a], "out": out})
-            return out
-
-        patch.setattr(rlhf, name, wrapper)
-    try:
-        rlhf.train(args)
-    finally:
-        patch.undo()
-    return args, calls
 
 
 def baseline_by_loop(rewards, group_size, kind):
