@@ -280,7 +280,8 @@ class RunningMeanStd(nn.Module):
     def update(self, x):
         batch = (x.mean(0), x.var(0), x.shape[0])
         self.mean, self.var, self.count = combine((self.mean, self.var, self.count), batch)
-        self.new = combine(self.new, batch)
+        if dist.is_initialized():
+            self.new = combine(self.new, batch)
 
     def merge_ranks(self):
         if dist.is_initialized():

@@ -192,12 +192,12 @@ REACHED = {
     ("ppo_rlhf.py", "lines"): 773,  # DPO (issue 47) on the successors and the hack's metrics; run dirs (issue 55)
     # torchrun (issue 53: the section MANY PROCESSES, the normalizers' merge, one record, the ranks' stops and faults),
     # run dirs made atomically and filming checked before the run (issue 55)
-    ("ppo_continuous.py", "lines"): 750,
-    ("ppo_continuous.py", "code_chars"): 23_247,
+    ("ppo_continuous.py", "lines"): 751,
+    ("ppo_continuous.py", "code_chars"): 23_272,
     ("ppo_atari.py", "lines"): 700,
     ("ppo_atari.py", "code_chars"): 21_917,
-    ("ppo_kl_penalty.py", "lines"): 764,
-    ("ppo_kl_penalty.py", "code_chars"): 23_609,
+    ("ppo_kl_penalty.py", "lines"): 765,
+    ("ppo_kl_penalty.py", "code_chars"): 23_634,
 }
 NOT_MET = set(REACHED)
 CASES = [

@@ -35,9 +35,22 @@ def torchrun(*args, nproc=2, standalone=True):
     ]
 
 
+ENV = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+
+
 def run(cmd, cwd, timeout=240):
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
-    return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(cmd, cwd=cwd, env=ENV, capture_output=True, text=True, timeout=timeout)
+
+
+def start(cmd, cwd):
+    """A command left running, for a test to signal or kill."""
+    return subprocess.Popen(cmd, cwd=cwd, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for(path, seconds=120):
+    deadline = time.time() + seconds
+    while not path.exists() and time.time() < deadline:
+        time.sleep(0.02)
 
 
 def tiny_flags(script, tmp_path, *extra, budget="tiny"):
@@ -123,12 +136,9 @@ def test_ctrl_c_stops_every_rank_at_one_iteration_with_one_checkpoint(tmp_path):
     flags = tiny_flags(script, tmp_path, "--run-dir", str(run_dir), "--save-every", "2", budget="interruptible")
     out = tmp_path / "result"
     cmd = [*torchrun(), str(ROOT / "tests" / "ranks_worker.py"), "main", script, str(out), "--", *flags]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = start(cmd, tmp_path)
     try:
-        deadline = time.time() + 120
-        while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline:
-            time.sleep(0.02)
+        wait_for(run_dir / "checkpoint.pt")
         # Ctrl-C in a terminal signals the whole foreground group: torchrun and each of its ranks.
         for pid in [
             proc.pid,
@@ -156,8 +166,7 @@ def test_sigterm_to_torchrun_stops_the_run_with_one_checkpoint(tmp_path):
         str(ROOT / script),
         *tiny_flags(script, tmp_path, "--run-dir", str(run_dir), budget="interruptible"),
     ]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = start(cmd, tmp_path)
     stdout, stderr = signal_at_checkpoint(proc, run_dir / "checkpoint.pt", signal.SIGTERM, wait=120)
     # torchrun forwards the signal to its ranks; they stop together and rank 0 saves. torchrun itself then reports the
     # signal it got (its own exit status, not the ranks').
@@ -175,22 +184,19 @@ def test_a_rank_that_dies_ends_the_others_with_one_line(tmp_path):
         str(ROOT / script),
         *tiny_flags(script, tmp_path, "--run-dir", str(run_dir), budget="interruptible"),
     ]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = start(cmd, tmp_path)
     try:
-        deadline = time.time() + 120
-        while not (run_dir / "checkpoint.pt").exists() and time.time() < deadline:
-            time.sleep(0.05)
+        wait_for(run_dir / "checkpoint.pt")
         children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
         ranks = [pid for pid in children if "--env-id" in open(f"/proc/{pid}/cmdline").read().replace("\0", " ")]
         assert len(ranks) == 2, children
         os.kill(int(max(ranks, key=int)), signal.SIGKILL)  # the rank started last
-        start = time.time()
+        killed_at = time.time()
         _, stderr = proc.communicate(timeout=90)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert time.time() - start < 60  # ended, not hung
+    assert time.time() - killed_at < 60  # ended, not hung
     assert proc.returncode != 0
     ours = [line for line in stderr.splitlines() if "ppo_continuous.py: error" in line]
     assert len(ours) == 1 and "lost another rank" in ours[0], stderr[-3000:]
@@ -279,14 +285,10 @@ def test_two_nodes_on_this_machine_run_one_run(tmp_path):
     port = free_port()
     out = tmp_path / "result"
     flags = tiny_flags(script, tmp_path, "--run-dir", str(tmp_path / "run"))
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
     node = [sys.executable, "-m", "torch.distributed.run", "--nnodes=2", "--nproc-per-node=1", "--rdzv-backend=c10d"]
     node += [f"--rdzv-endpoint=127.0.0.1:{port}", "--rdzv-id=two-nodes"]
     cmd = [*node, str(ROOT / "tests" / "ranks_worker.py"), "main", script, str(out), "--", *flags]
-    nodes = [
-        subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        for _ in range(2)
-    ]
+    nodes = [start(cmd, tmp_path) for _ in range(2)]
     try:
         outputs = [p.communicate(timeout=240) for p in nodes]
     finally:
