@@ -168,10 +168,11 @@ def preference_loss(chosen_scores, rejected_scores):
     return -F.logsigmoid(chosen_scores - rejected_scores).mean()
 
 
-def pairwise_accuracy(scores, gold):
-    """How good a proxy the RM is here: the share of pairs of different gold it ranks as gold does (nan if none)."""
-    differ = gold[:, None] > gold[None, :]
-    return ((scores[:, None] > scores[None, :]) & differ).sum() / differ.sum()
+def pairwise_accuracy(scores, gold, prompts):
+    """How good a proxy the RM is here, on the kind of pair it learned from: two responses to one prompt, of different
+    gold. Returns the share of such pairs it ranks as gold does (nan if none), and their number."""
+    differ = (gold[:, None] > gold[None, :]) & (prompts[:, None] == prompts[None, :])
+    return ((scores[:, None] > scores[None, :]) & differ).sum() / differ.sum(), differ.sum()
 
 
 def adapt_kl_coef(kl_coef, kl, target, n_steps, horizon):
@@ -197,7 +198,7 @@ PAD, BOS, EOS = range(3)
 TOKEN = {word: i for i, word in enumerate(WORDS)}
 PROMPT_LENGTH = 6  # "<bos> the NOUN was ADJ and": a review's first clause, which a response goes on from
 BLOCK_SIZE = 32  # the longest sequence, prompt and response, that the networks take
-POOL = 16  # responses of each rollout added to the pool on which the RM's accuracy is measured
+POOL = 640  # the most recent responses (ten rollouts of 64) on which the RM's accuracy is measured
 GOLD_PENALTY = -6.0  # the gold score of text a reader rejects, garbled or spam: that of one "very awful" clause
 CLAUSE = rf"the ({'|'.join(NOUNS)}) was (?:(very|not) )?({'|'.join(VALENCE)})"
 
@@ -445,14 +446,14 @@ def rollout(agent, reference, reward_model, args):
 
 def response_stats(batch, pool):
     """What a batch of responses shows: its scores, its KL to pi_SFT (per response, in nats), its forms; and how often
-    the RM ranks as gold does the pairs of different gold in `pool`, (RM scores, gold) of responses the policy wrote."""
+    the RM ranks as gold does the pairs in `pool`, (RM scores, gold, prompts) of the policy's recent responses."""
     mask = batch["mask"]
     stats = {"score": batch["scores"].mean(), "gold_score": batch["gold"].mean()}
     stats["kl"] = ((batch["logprobs"] - batch["ref_logprobs"]) * mask).sum(1).mean()
     stats |= {name: batch[name].mean() for name in ("well_formed", "spam", "garbled")}
     stats["entropy"] = masked_mean(batch["entropy"], mask)
     stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
-    stats |= {"rm_accuracy": pairwise_accuracy(*pool), "rm_pairs": (pool[1][:, None] > pool[1][None, :]).sum()}
+    stats["rm_accuracy"], stats["rm_pairs"] = pairwise_accuracy(*pool)
     return {f"rlhf/{name}": value.item() for name, value in stats.items()}
 
 
@@ -524,9 +525,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
     num_iterations = args.total_episodes // args.batch_size
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     kl_coef = checkpoint["kl_coef"] if checkpoint else args.kl_coef
-    # The RM's accuracy is measured on a pool that grows by the first POOL responses of each rollout: never empty of
-    # pairs of different gold, as a batch that collapsed onto one text is.
-    pool = checkpoint["rm_pool"] if checkpoint else torch.zeros(2, 0, device=device)
+    # The RM's accuracy is measured on the last POOL responses, which hold more pairs to one prompt than one rollout.
+    pool = checkpoint["rm_pool"] if checkpoint else torch.zeros(3, 0, device=device)
     start_iteration = checkpoint["iteration"] + 1 if checkpoint else 1
     # DPO's pairs are stage 2's, drawn with stage 2's seed: before stage 3's random state is set or restored
     pairs = dpo_pairs(reference, args, device) if args.dpo else None
@@ -575,7 +575,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         if args.advantage == "gae" and not args.dpo:  # a critic was fitted
             returns = batch["returns"][mask.bool()]
             losses["explained_variance"] = (1 - (returns - batch["values"][mask.bool()]).var() / returns.var()).item()
-        pool = torch.cat([pool, torch.stack([batch["scores"], batch["gold"]])[:, :POOL]], 1)
+        prompts = (batch["tokens"][:, 2] * len(WORDS) + batch["tokens"][:, 4]).float()  # its NOUN and ADJ, one number
+        pool = torch.cat([pool, torch.stack([batch["scores"], batch["gold"], prompts])], 1)[:, -POOL:]
         stats = response_stats(batch, pool)
         sps = (iteration - start_iteration + 1) * args.batch_size / (time.time() - start_time)
         scalars = {f"losses/{name}": value for name, value in losses.items()} | stats

@@ -8,8 +8,8 @@ and DPO's runs.
 
 It reads the run's sft.pt and reward_model.pt (stages 1 and 2 depend only on the seed, so any arm of a seed serves)
 and writes benchmarks/results/rlhf/best_of_n/seed<N>.csv: N, the analytic KL, and the mean RM score, gold score and
-shares of well-formed, spam and garbled text of the kept responses, and how often the RM ranks pairs of them (of
-different gold) as gold does; after '# key: value' lines that say where and how it was made.
+shares of well-formed, spam and garbled text of the kept responses, and how often the RM ranks pairs of them (to one
+prompt, of different gold) as gold does; after '# key: value' lines that say where and how it was made.
 """
 
 from __future__ import annotations
@@ -67,7 +67,8 @@ def best_of_n(run_dir, prompts=256, ns=NS, seed=0):
         best = scores[:, :n].argmax(1) + torch.arange(prompts) * max(ns)  # the kept response of each prompt
         row = [n, analytic_kl(n), scores.flatten()[best].mean().item(), gold[best].mean().item()]
         row += [forms[name][best].mean().item() for name in ("well_formed", "spam", "garbled")]
-        rows.append(row + [rlhf.pairwise_accuracy(scores.flatten()[best], gold[best]).item()])
+        prompt = tokens[best, 2] * len(rlhf.WORDS) + tokens[best, 4]  # the RM learned from pairs to one prompt
+        rows.append(row + [rlhf.pairwise_accuracy(scores.flatten()[best], gold[best], prompt)[0].item()])
     return rows
 
 

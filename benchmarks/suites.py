@@ -160,6 +160,25 @@ SUITES = {
         budget_flag="--total-episodes",
         report="rlhf",
     ),
+    # Over-optimization as Gao et al. 2022 (arXiv:2210.10760) measured it (issue 54): runs long enough to pass the gold
+    # peak, at beta 0 and at the default 0.05, and beta 0 with reward models from 1,024, 4,096 (the default) and 16,384
+    # pairs. The length was chosen from a pilot on seed 4, outside the reported seeds (its results: rlhf-long_102400/).
+    # Best-of-N from each seed's pi_SFT and each reward model is benchmarks/best_of_n.py on the runs' stages 1 and 2.
+    "rlhf-long": Suite(
+        {
+            "beta0": ("ppo_rlhf.py", ["--kl-coef", "0"]),
+            "beta0.05": ("ppo_rlhf.py", []),
+            "rm1024-beta0": ("ppo_rlhf.py", ["--rm-pairs", "1024", "--kl-coef", "0"]),
+            "rm16384-beta0": ("ppo_rlhf.py", ["--rm-pairs", "16384", "--kl-coef", "0"]),
+        },
+        ["reviews"],
+        [1, 2, 3],
+        51_200,
+        "ppo_rlhf.py past the gold peak: beta 0 and 0.05, and beta 0 with reward models from 1,024 and 16,384 pairs",
+        env_flag=None,
+        budget_flag="--total-episodes",
+        report="rlhf",
+    ),
     # The paper's Figure 3 (issue 41): the algorithms PPO was compared with, on the mujoco suite's tasks and budget.
     # A2C is Stable-Baselines3's, TRPO sb3-contrib's, each with the RL Zoo's hyperparameters for the task (SB3's
     # defaults where the Zoo has none; benchmarks/sb3_mujoco.py). PPO's curves are the mujoco suite's runs.

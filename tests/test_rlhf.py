@@ -131,14 +131,17 @@ def test_group_advantages_match_a_loop_over_responses(group_size):
     assert torch.equal(same, torch.zeros(4, 3))
 
 
-def test_pairwise_accuracy_matches_a_loop_over_pairs():
+def test_pairwise_accuracy_counts_only_pairs_to_one_prompt_as_a_loop_over_pairs_does():
     rng = np.random.default_rng(3)
-    scores, gold = rng.normal(size=12), rng.integers(-2, 3, size=12).astype(float)
-    pairs = [(i, j) for i in range(12) for j in range(12) if gold[i] > gold[j]]
+    scores, gold, prompts = rng.normal(size=12), rng.integers(-2, 3, size=12).astype(float), rng.integers(0, 3, 12)
+    pairs = [(i, j) for i in range(12) for j in range(12) if gold[i] > gold[j] and prompts[i] == prompts[j]]
     expected = sum(scores[i] > scores[j] for i, j in pairs) / len(pairs)
-    assert rlhf.pairwise_accuracy(*t64(scores, gold)).item() == pytest.approx(expected)
-    assert rlhf.pairwise_accuracy(*t64(-scores, gold)).item() == pytest.approx(1 - expected)  # no ties in scores
-    assert torch.isnan(rlhf.pairwise_accuracy(torch.ones(3), torch.ones(3))), "no pair of different gold"
+    accuracy, n_pairs = rlhf.pairwise_accuracy(*t64(scores, gold, prompts))
+    assert accuracy.item() == pytest.approx(expected) and n_pairs == len(pairs) > 0
+    assert rlhf.pairwise_accuracy(*t64(-scores, gold, prompts))[0].item() == pytest.approx(1 - expected)  # no ties
+    # One prompt each: no pair counts, however the scores and gold differ
+    assert torch.isnan(rlhf.pairwise_accuracy(*t64(scores, gold, np.arange(12)))[0]), "no pair to one prompt"
+    assert torch.isnan(rlhf.pairwise_accuracy(torch.ones(3), torch.ones(3), torch.zeros(3))[0]), "no different gold"
 
 
 def test_grpo_groups_share_a_prompt_and_fit_no_value_function():
@@ -467,19 +470,21 @@ def test_each_response_has_one_form_and_spam_is_not_well_formed():
     assert forms["garbled"].tolist() == [0, 0, 0, 1]
 
 
-def test_rm_accuracy_rests_on_the_pool_and_a_collapsed_batch_leaves_it_defined():
+def test_rm_accuracy_rests_on_the_recent_pool_and_a_collapsed_batch_leaves_it_defined():
     tokens, mask = tokens_of(*["the film was good and the film was good <eos>"] * 4)  # collapsed onto one spam text
     gold, forms = rlhf.gold_scores(tokens, mask)
     zeros = torch.zeros_like(mask)
     batch = {"scores": torch.full((4,), 2.0), "gold": gold, "mask": mask, "logprobs": zeros, "ref_logprobs": zeros}
     batch |= forms | {"entropy": zeros, "has_eos": torch.ones(4)}
-    assert math.isnan(rlhf.pairwise_accuracy(batch["scores"], batch["gold"]).item()), "the batch alone has no pair"
-    earlier = torch.tensor([[0.5, 1.0, 1.5], [9.0, 2.0, 4.0]])  # (RM score, gold) of earlier responses
-    pool = torch.cat([earlier, torch.stack([batch["scores"], batch["gold"]])], 1)
+    prompt = torch.full((4,), 7.0)
+    assert math.isnan(rlhf.pairwise_accuracy(batch["scores"], batch["gold"], prompt)[0]), "the batch alone: no pair"
+    # (RM score, gold, prompt) of earlier responses: two to prompt 7, one to prompt 8
+    earlier = torch.tensor([[0.5, 1.0, 1.5], [9.0, 2.0, 4.0], [7.0, 7.0, 8.0]])
+    pool = torch.cat([earlier, torch.stack([batch["scores"], batch["gold"], prompt])], 1)
     stats = rlhf.response_stats(batch, pool)
-    # pairs of different gold: 9 > 4 > 2 among the earlier three (3 pairs, the RM gets 1 right: 1.5 > 1.0), and each
-    # earlier one above the 4 spam copies (-6) (12 pairs, the RM gets none right: 2.0 beats them all)
-    assert stats["rlhf/rm_pairs"] == 15 and stats["rlhf/rm_accuracy"] == pytest.approx(1 / 15)
+    # pairs to prompt 7 of different gold: 9 > 2 among the earlier (the RM gets it wrong, 0.5 < 1.0), and each of those
+    # two above the 4 spam copies (-6) (8 pairs, the RM gets none right: 2.0 beats them both); prompt 8 has one response
+    assert stats["rlhf/rm_pairs"] == 9 and stats["rlhf/rm_accuracy"] == 0
     assert stats["rlhf/spam"] == 1 and stats["rlhf/well_formed"] == 0
 
 
