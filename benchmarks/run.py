@@ -283,8 +283,12 @@ def last_step(job):
             tail = f.read().decode(errors="replace")
     except OSError:
         return 0
-    steps = re.findall(r"step\s+([\d,]+)/", tail)
-    return int(steps[-1].replace(",", "")) if steps else 0
+    # The last "step N/" (the gym scripts), or "iteration I/M" (ppo_rlhf.py's stage 3, I/M of the budget in steps)
+    marks = re.findall(r"(step|iteration)\s+([\d,]+)/([\d,]+)", tail)
+    if not marks:
+        return 0
+    kind, done, total = marks[-1][0], *(int(x.replace(",", "")) for x in marks[-1][1:])
+    return done if kind == "step" else done * job.total_timesteps // total
 
 
 def fmt_time(seconds):

@@ -179,7 +179,7 @@ SUITES = {
         "ppo_rlhf.py past the gold peak: beta 0 and 0.05, and beta 0 with reward models from 1,024 and 16,384 pairs",
         env_flag=None,
         budget_flag="--total-episodes",
-        report="rlhf",
+        report="overoptimization",
     ),
     # The paper's Figure 3 (issue 41): the algorithms PPO was compared with, on the mujoco suite's tasks and budget.
     # A2C is Stable-Baselines3's, TRPO sb3-contrib's, each with the RL Zoo's hyperparameters for the task (SB3's

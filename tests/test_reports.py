@@ -415,26 +415,31 @@ def test_readme_results_block_is_generated_from_the_committed_csvs(path, full):
         if base.suite_name(folder) == "figure3":  # one figure, a panel per task
             assert (folder / "curves" / "figure3.png").exists()
             continue
+        if base.suite_name(folder).startswith("rlhf"):  # a panel per seed; the arms' means are the rlhf-long figure
+            assert (folder / "curves" / "seeds.png").exists()
+            continue
         for env in {r.env_id for r in load_runs(folder)}:
             assert (folder / "curves" / f"{env}.png").exists(), (folder, env)
 
 
 def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_path):
-    """rlhf_block counts a seed as over-optimized when its gold score ends more than 10% below its peak while the KL
-    grows past its value there and the RM score ends at least as high (Gao et al. 2022), and no other; gives the
+    """rlhf_block counts a seed as over-optimized when its gold score rose to its peak and fell from it, each by more
+    than twice the run's own standard error, while the KL grew past its value there and the RM score ended at least as
+    high (Gao et al. 2022), and no other: not a fall within the noise, nor one from the first tenth; gives the
     controller's final KL beside its target, and the default runs' wall time; names each fall's hack by the larger of
     the spam and garbled shares at the end; and gives best-of-N's last point."""
     folder = tmp_path / "rlhf"
     rise = [i / 99 for i in range(100)]  # 0 to 1 over 100 iterations
     fall = [1 - r for r in rise]
     falls_late = [min(r, 1.2 - r) for r in rise]  # peaks at 0.6 and ends at 0.2
-    dips = [min(r, 0.8) - 0.25 * max(0.0, r - 0.8) for r in rise]  # flat at 0.8, then 5% below it at the end
+    noisy = [g + (-1) ** i for i, g in enumerate(falls_late)]  # falls_late, with each iteration 1 above or below
     shapes = {  # (RM score, gold, KL) of each run
         ("beta0", 1): (rise, falls_late, rise),  # over-optimized
         ("beta0", 2): (rise, rise, rise),  # gold kept rising
         ("beta0", 3): (falls_late, falls_late, rise),  # gold fell with the score
         ("beta0", 4): (rise, falls_late, fall),  # gold fell as the KL fell: the controller pulling back, not this
-        ("beta0", 5): (rise, dips, rise),  # gold fell, but by less than 10%
+        ("beta0", 5): (rise, noisy, rise),  # gold fell, but by less than the run's own noise
+        ("beta0", 7): (rise, fall, rise),  # gold fell from the first tenth: it never rose
         ("beta0", 6): (rise, falls_late, rise),  # over-optimized, onto garbled text
         ("dpo0.1", 1): (falls_late, falls_late, rise),  # as beta0's seed 3; but DPO never sees the RM: over-optimized
         ("adaptive", 1): (rise, rise, [2.1] * 100),
@@ -454,7 +459,7 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
     (folder / "best_of_n" / "seed1.csv").write_text("\n".join(best) + "\n")
     block = rlhf.rlhf_block(tmp_path)
     # the last tenth: the mean of rise over iterations 90 to 99, 0.95, and half of it
-    assert "beta0 2 of 6 (seed 1: gold 0.6 to 0.2 as KL grew 0.6 to 1.0; spam 0.95; seed 6: gold" in block
+    assert "beta0 2 of 7 (seed 1: gold 0.6 to 0.2 as KL grew 0.6 to 1.0; spam 0.95; seed 6: gold" in block
     assert "as KL grew 0.6 to 1.0; garbled 0.48)" in block and rlhf.BLIND_SPOT in block
     assert (
         "reached gold 3.25 at N = 4 (KL at most 0.64 nats; 1.50 at N = 1), with the reward models of seeds 1." in block
@@ -563,3 +568,52 @@ def test_gaos_forms_are_fitted_back_from_points_of_known_alpha_and_beta(form):
     assert peak == pytest.approx(exact_peak, rel=0.1) and at_peak == pytest.approx(exact_at_peak, rel=0.1)
     rising = rlhf.fit_gao(d, d * 2.0, form)  # no fall in the data: no peak to report
     assert rising[3] == float("inf") or rising[2] > d.max() * 5
+
+
+def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from_them(tmp_path):
+    """Issue 54: on runs drawn from Gao et al.'s RL form with known alpha and beta per reward model size, and best-of-N
+    points from its own form, the rlhf-long report fits both back per size, counts the beta-0 runs that pass their
+    peak as over-optimized, and answers (a) a weaker RM peaks earlier and lower, (b) runs that stop early on the same
+    curve lie on it, and (c) PPO lies below best-of-N, from those numbers; and draws its figure."""
+    from reports import overoptimization as over
+
+    folder, g0 = tmp_path / "rlhf-long", 1.0
+    rl = {1024: (1.5, 1.0), 4096: (2.0, 1.0), 16384: (2.2, 0.9)}  # d* = e^(alpha / beta - 1): 1.65, 2.72, 4.2
+    bon = {1024: (2.0, 0.5), 4096: (3.0, 0.5), 16384: (3.5, 0.5)}
+    noise = np.random.default_rng(0)
+    for variant in SUITES["rlhf-long"].variants:
+        pairs, d_end = over.rm_pairs(variant), 4.5 if over.beta_of(variant) == 0 else 2.0
+        for seed in (1, 2, 3):
+            fake_run(folder, "reviews", variant, seed, 1.0, steps=102_400)
+            d = np.linspace(0.05, d_end, 100)
+            gold = g0 + over.curve("rl", *rl[pairs], d) + noise.normal(0, 0.05, d.size)
+            rows = []
+            for i in range(100):
+                stats = {"score": i / 99, "gold_score": gold[i], "kl": d[i] ** 2, "spam": 0.0, "garbled": 0.0}
+                rows.append([(i + 1) * 1024] + [stats.get(name, 0.5) for name in RLHF_STATS])
+            write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", RLHF_STATS, rows)
+    for pairs, (alpha, beta) in bon.items():
+        where = over.best_of_n_folder(tmp_path, pairs) / "best_of_n"
+        where.mkdir(parents=True, exist_ok=True)
+        for seed in (1, 2, 3):
+            lines = ["# wall_time_s: 60", ",".join(BEST_OF_N)]
+            for n in (1, 2, 4, 8, 16, 32, 64):
+                kl = math.log(n) - (n - 1) / n
+                lines.append(f"{n},{kl},0.5,{g0 + over.curve('bon', alpha, beta, math.sqrt(kl))},1,0,0,0.9")
+            (where / f"seed{seed}.csv").write_text("\n".join(lines) + "\n")
+    text = report.report(folder, results=tmp_path)
+
+    def fitted(pairs, form):
+        row = next(line for line in text.splitlines() if line.startswith(f"| {pairs:,} |") and over.FORMS[form] in line)
+        return [float(c.split("±")[0]) for c in row.split("|")[4:6]]
+
+    for pairs in rl:
+        assert fitted(pairs, "rl") == pytest.approx(rl[pairs], abs=0.05)
+        assert fitted(pairs, "bon") == pytest.approx(bon[pairs], abs=0.01)
+    # the beta-0 runs of 1,024 and 4,096 pairs pass their peak (d* 1.65, 2.72 < 4.5); those of 16,384 barely reach it
+    counts = {row.split("|")[1].strip(): row.split("|")[-2].strip() for row in text.splitlines() if " of 3 |" in row}
+    assert counts == {"beta0": "3 of 3", "beta0.05": "0 of 3", "rm1024-beta0": "3 of 3", "rm16384-beta0": "0 of 3"}
+    assert "The 1,024-pair RM's runs peak lower than the 16,384-pair RM's" in text and ") and earlier (their" in text
+    assert "averaged over their iterations, lies within 2 standard errors of that curve (" in text
+    assert "4,096 pairs, β = 0: below best-of-N (" in text and "4,096 pairs, β = 0.05: below best-of-N (" in text
+    assert (folder / "curves" / "panels.png").exists() and (folder / "curves" / "seeds.png").exists()

@@ -453,4 +453,4 @@ def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
     assert "| beta0.05 | " in text and "the film was good" in text and "| beta0.05 | 1 | " in text
     assert "## Best-of-N from pi_SFT (seeds 1)" in text and "1.0 min in all" in text
     assert "| 4 | 0.64 (1) | 0.90 (1) | 3.25 (1) | 0.50 (1) | 0.50 (1) | 0.00 (1) | – |" in text
-    assert (job.results_dir / "curves" / "reviews.png").exists()
+    assert (job.results_dir / "curves" / "seeds.png").exists()

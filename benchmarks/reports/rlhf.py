@@ -26,12 +26,44 @@ RLHF_COLUMNS = [
     ("garbled", "garbled"),
     ("eos_fraction", "ends in EOS"),
     ("response_length", "length"),
-    ("rm_accuracy", "RM accuracy on the policy's pool"),
+    ("rm_accuracy", "RM accuracy, recent pairs to one prompt"),
 ]
 BLIND_SPOT = (
     "The spam rule is a blind spot planted in the reward model's data: π_SFT never says a clause twice, so no pair it"
     " learned from ranks a repeat."
 )
+
+
+# From this commit on, the RM's accuracy on the policy's responses counts only recent pairs to one prompt; before it,
+# a pool of every rollout's first 16 responses, mostly pairs to different prompts, which the RM never learned to rank.
+ONE_PROMPT = "605ebaa"
+
+
+def without_old_accuracy(series, runs):
+    """The series, with the RM's accuracy and its pairs blanked (nan) for runs made before ONE_PROMPT: they measured
+    something else under the same name."""
+    import subprocess
+
+    import numpy as np
+
+    from results import ROOT
+
+    out = dict(series)
+    for run in runs:
+        commit = (run.meta.get("commit") or "unknown").split()[0]
+        ancestor = subprocess.run(
+            ["git", "merge-base", "--is-ancestor", ONE_PROMPT, commit], cwd=ROOT, capture_output=True
+        )
+        if (run.variant, run.seed) in out and ancestor.returncode != 0:
+            out[run.variant, run.seed] = array = out[run.variant, run.seed].copy()
+            array[:, [1 + RLHF_STATS.index("rm_accuracy"), 1 + RLHF_STATS.index("rm_pairs")]] = np.nan
+    return out
+
+
+def cell(values, n=True):
+    """'mean ± std (n)' over seeds, or '–' where every value is nan (not measured)."""
+    values = [v for v in values if v == v]
+    return (fmt(*mean_std(values)) + (f" ({len(values)})" if n else "")) if values else "–"
 
 
 def fit_gao(d, gain, form):
@@ -52,9 +84,10 @@ def fit_gao(d, gain, form):
     return float(alpha), float(beta), float(peak), float(alpha**2 / (4 * beta) if form == "bon" else beta * peak)
 
 
-def tenths(run, name):
+def tenths(run, name, spread=False):
     """The mean of a run's rlhf/<name> over each tenth of its iterations, in order, counted from the end: the last
-    is the mean of the last tenth, as in report.md."""
+    is the mean of the last tenth, as in report.md. With `spread`, also each mean's standard error, from the spread of
+    the tenth's iterations."""
     import numpy as np
 
     column = run[:, 1 + RLHF_STATS.index(name)]
@@ -62,7 +95,9 @@ def tenths(run, name):
     first = len(column) % width
     with warnings.catch_warnings():  # an iteration with no pair of different gold has no RM accuracy: nan
         warnings.simplefilter("ignore", RuntimeWarning)
-        return [np.nanmean(column[i : i + width]) for i in range(first, len(column), width)]
+        means = [np.nanmean(column[i : i + width]) for i in range(first, len(column), width)]
+        errors = [np.nanstd(column[i : i + width], ddof=1) / np.sqrt(width) for i in range(first, len(column), width)]
+    return (means, errors) if spread else means
 
 
 def direct_variants():
@@ -71,21 +106,26 @@ def direct_variants():
 
 
 def falls(series, direct=()):
-    """{(variant, seed): text} for each run over-optimized (Gao et al. 2022): its gold score, per tenth of training,
-    ended more than 10% below its peak while its KL to pi_SFT grew past its value there and its RM score ended at
-    least as high; for a variant in `direct` (DPO), which never sees the RM, the gold and the KL alone, as Rafailov et
-    al. (2024) find direct methods over-optimize. The text names the hack by the larger of the spam and garbled shares
-    of the last tenth."""
+    """{(variant, seed): text} for each run over-optimized (Gao et al. 2022). Its gold score, per tenth of training,
+    rose from the first tenth to its peak and fell from the peak to the last tenth, each by more than twice the
+    standard error of the difference (the run's own noise); its KL to pi_SFT ended above its value at the peak; and its
+    RM score ended at least as high as there, but for a variant in `direct` (DPO), which never sees the RM: Rafailov
+    et al. (2024) find that direct methods over-optimize too. The text names the hack by the last tenth's shares of
+    spam and garbled text."""
     out = {}
     for key, run in sorted(series.items()):
-        gold, score, kl = (tenths(run, name) for name in ("gold_score", "score", "kl"))
+        (gold, error), score, kl = tenths(run, "gold_score", spread=True), tenths(run, "score"), tenths(run, "kl")
         peak = max(range(len(gold)), key=gold.__getitem__)
+
+        noise = [2 * (error[peak] ** 2 + e**2) ** 0.5 for e in error]  # of a difference from the peak
+        rose, fell = gold[peak] - gold[0] > noise[0], gold[peak] - gold[-1] > noise[-1]
         proxy_held = key[0] in direct or score[-1] >= score[peak]
-        if gold[-1] < gold[peak] - 0.1 * abs(gold[peak]) and kl[-1] > kl[peak] and proxy_held:
+        if rose and fell and kl[-1] > kl[peak] and proxy_held:
             spam, garbled = tenths(run, "spam")[-1], tenths(run, "garbled")[-1]
             hack = f"spam {spam:.2f}" if spam >= garbled else f"garbled {garbled:.2f}"
             if max(spam, garbled) < 0.1:
-                hack = f"well-formed text the RM overrates (spam {spam:.2f}, garbled {garbled:.2f})"
+                overrates = "its implicit reward" if key[0] in direct else "the RM"
+                hack = f"well-formed text {overrates} overrates (spam {spam:.2f}, garbled {garbled:.2f})"
             out[key] = f"gold {gold[peak]:.1f} to {gold[-1]:.1f} as KL grew {kl[peak]:.1f} to {kl[-1]:.1f}; {hack}"
     return out
 
@@ -119,10 +159,10 @@ def readme_lines(folder, results, reference, full):
 
 def rlhf_report(folder, runs):
     """<folder>/report.md for the rlhf suite: per setting, each metric's mean over the last tenth of the iterations,
-    then the mean ± std over seeds, and per seed; best-of-N from pi_SFT; <folder>/curves/reviews.png: the RM score and
-    the gold score against sqrt(KL) over training, as Gao et al. (2022) plot over-optimization, with best-of-N's
-    frontier; and the responses each run printed last."""
-    series = read_rlhf_series(folder)
+    then the mean ± std over seeds, and per seed; best-of-N from pi_SFT; <folder>/curves/seeds.png: each seed's RM
+    and gold scores against sqrt(KL) (the arms' means, with the fitted forms, are the rlhf-long report's figure); and
+    the responses each run printed last."""
+    series = without_old_accuracy(read_rlhf_series(folder), runs)
     best = read_best_of_n(folder)
     variants = ordered_variants("rlhf", runs)
     header = "| setting | " + " | ".join(heading for _, heading in RLHF_COLUMNS) + " | RM accuracy, pi_SFT's pairs |"
@@ -133,20 +173,21 @@ def rlhf_report(folder, runs):
         cells = []
         for name, _ in RLHF_COLUMNS:
             last = [tenths(s, name)[-1] for s in runs_of]
-            cells.append(f"{fmt(*mean_std(last))} ({len(last)})")
+            cells.append(cell(last))
         held_out = [float(r.meta["rm_held_out_accuracy"]) for r in runs if r.variant == variant]
         cells.append(f"{fmt(*mean_std(held_out))} ({len(held_out)})" if held_out else "–")
         lines.append(f"| {variant} | " + " | ".join(cells) + " |")
     lines += [
         "",
         "Each run's mean over the last tenth of training, as the mean ± std over seeds (n). The reward model's accuracy"
-        " is the share of pairs of responses with different gold scores that it ranks as gold does: on a pool of the"
-        " policy's responses, the first 16 of every rollout so far, and on held-out pairs of pi_SFT's responses to one"
-        " prompt, of the kind it was trained on. Spam says a clause twice; garbled text is outside the grammar.",
+        " is the share of pairs of responses to one prompt, with different gold scores, that it ranks as gold does (the"
+        " kind of pair it learned from): among the last 640 responses the policy wrote (nan where it wrote one response"
+        f" a prompt), and on held-out pairs of pi_SFT's responses; – for runs made before commit {ONE_PROMPT}, whose"
+        " pool held mostly pairs to different prompts. Spam says a clause twice; garbled text is outside the grammar.",
         "",
         "Per seed, at the end of training (the means of its last tenth; the pool's pairs at the end):",
         "",
-        "| setting | seed | RM score | gold score | KL to pi_SFT (nats) | RM accuracy, held out | RM accuracy, pool"
+        "| setting | seed | RM score | gold score | KL to pi_SFT (nats) | RM accuracy, held out | RM accuracy, recent"
         " (pairs) | spam | garbled | over-optimized |",
         "|---" * 10 + "|",
     ]
@@ -157,8 +198,8 @@ def rlhf_report(folder, runs):
             run = series[(variant, seed)]
             cells = [f"{tenths(run, name)[-1]:.2f}" for name in ("score", "gold_score", "kl")]
             cells.append(f"{held_out[seed]:.2f}" if seed in held_out else "–")
-            pairs = run[-1, 1 + RLHF_STATS.index("rm_pairs")]
-            cells.append(f"{tenths(run, 'rm_accuracy')[-1]:.2f} ({pairs:,.0f})")
+            pairs, accuracy = run[-1, 1 + RLHF_STATS.index("rm_pairs")], tenths(run, "rm_accuracy")[-1]
+            cells.append(f"{accuracy:.2f} ({pairs:,.0f})" if pairs == pairs else "–")
             cells += [f"{tenths(run, name)[-1]:.2f}" for name in ("spam", "garbled")]
             cells.append(fell.get((variant, seed), "no"))
             lines.append(f"| {variant} | {seed} | " + " | ".join(cells) + " |")
@@ -166,20 +207,22 @@ def rlhf_report(folder, runs):
     if best:
         meta = [m for m, _ in best.values()]
         wall = sum(float(m.get("wall_time_s", 0)) for m in meta)
+        commits = "; ".join(sorted({m.get("commit", "?") for m in meta}))
         lines += [
             "",
             f"## Best-of-N from pi_SFT (seeds {', '.join(map(str, sorted(best)))})",
             "",
             "For each of 256 prompts, N responses of pi_SFT, and the one the seed's reward model scores highest kept:"
-            " the frontier of gold against KL that needs no optimizer, with KL[best-of-N || pi_SFT] = log N - (N - 1)"
-            f" / N (`benchmarks/best_of_n.py`; commits {'; '.join(sorted({m.get('commit', '?') for m in meta}))};"
-            f" {wall / 60:.1f} min in all).",
+            " the frontier of gold against KL that needs no optimizer, with KL[best-of-N || pi_SFT] at most log N -"
+            f" (N - 1) / N (Beirami et al. 2024; `benchmarks/best_of_n.py`; commits {commits}; {wall / 60:.1f} min in"
+            " all).",
             "",
             *best_of_n_lines(best),
         ]
     lines += [
         "",
-        "![RM and gold score against sqrt(KL)](curves/reviews.png)",
+        "Gold against sqrt(KL), with best-of-N and Gao et al.'s fitted forms, is drawn for these arms beside the"
+        " longer runs in [the rlhf-long report](../rlhf-long/report.md).",
         "",
         "Per seed, the gold score (solid, left axis) and the RM's score (dashed, right axis) against sqrt(KL), each a"
         " moving average over 10 iterations, with the gold score's peak marked:",
@@ -194,41 +237,10 @@ def rlhf_report(folder, runs):
             path = folder / "samples" / f"reviews__{variant}__seed{seed}.txt"
             text = path.read_text().strip() if path.exists() else "(none kept)"
             lines += [f"{variant}, seed {seed}:", "", "```", text, "```", ""]
-    plot_rlhf(folder, series, variants, best)
     plot_rlhf_seeds(folder, series, variants)
     text = "\n".join(lines) + "\n"
     (folder / "report.md").write_text(text)
     return text
-
-
-def plot_rlhf(folder, series, variants, best=None):
-    """<folder>/curves/reviews.png: per setting, the mean over seeds of the RM and gold scores against sqrt(KL); and
-    best-of-N's, N = 1 ... 64, at its closed-form KL, an upper bound."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), sharex=True)
-    for variant in variants:
-        runs_of = [series[key] for key in sorted(series) if key[0] == variant]
-        n = min(len(s) for s in runs_of)
-        mean = np.mean([s[:n] for s in runs_of], axis=0)
-        x = np.sqrt(np.clip(mean[:, 1 + RLHF_STATS.index("kl")], 0, None))
-        for ax, name in zip(axes, ("score", "gold_score"), strict=True):
-            ax.plot(x, mean[:, 1 + RLHF_STATS.index(name)], label=f"{variant} ({len(runs_of)})", lw=1.2)
-    if best:
-        mean = np.mean([table for _, table in best.values()], axis=0)
-        for ax, name in zip(axes, ("score", "gold_score"), strict=True):
-            label = f"best-of-N, N = 1 ... {mean[-1, 0]:.0f} ({len(best)})"
-            ax.plot(np.sqrt(mean[:, 1]), mean[:, BEST_OF_N.index(name)], "k--o", ms=3, lw=1, label=label)
-    for ax, title in zip(axes, ("reward model's score", "gold score"), strict=True):
-        ax.set_title(title)
-        ax.set_xlabel("sqrt(KL[pi || pi_SFT]), nats^0.5")
-        ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=7)
-    return save_figure(fig, folder, "reviews.png")
 
 
 def moving_average(x, width=10):
@@ -285,12 +297,12 @@ def rlhf_block(results=RESULTS):
     if not runs:
         return "\n".join([RLHF_START, "No run of the rlhf suite is committed yet.", RLHF_END])
     finished = {(r.variant, r.seed) for r in runs}
-    series = {key: s for key, s in read_rlhf_series(folder).items() if key in finished}
+    series = without_old_accuracy({k: s for k, s in read_rlhf_series(folder).items() if k in finished}, runs)
     variants = ordered_variants("rlhf", runs)
     seeds = ", ".join(map(str, sorted({r.seed for r in runs})))
     steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in runs}))
     columns = [c for c in RLHF_COLUMNS if c[0] in ("score", "gold_score", "kl", "entropy", "spam", "garbled")]
-    columns.append(("rm_accuracy", "RM accuracy, the policy's pool"))
+    columns.append(("rm_accuracy", "RM accuracy, recent pairs to one prompt"))
     lines = [
         RLHF_START,
         "",
@@ -305,7 +317,7 @@ def rlhf_block(results=RESULTS):
     for variant in variants:
         runs_of = {seed: series[(v, seed)] for v, seed in sorted(series) if v == variant}
         last[variant] = {name: [tenths(s, name)[-1] for s in runs_of.values()] for name in RLHF_STATS}
-        cells = [fmt(*mean_std(last[variant][name])) for name, _ in columns]
+        cells = [cell(last[variant][name], n=False) for name, _ in columns]
         lines.append(f"| {variant} | " + " | ".join(cells) + " |")
     script = load_script("ppo_rlhf.py").Args()
     # The suite's variant with no flags of its own, at the script's default budget, is `python ppo_rlhf.py`.
@@ -325,7 +337,7 @@ def rlhf_block(results=RESULTS):
         lines.append(
             f"- **The reward model** ranked {fmt(*mean_std(list(held_out.values())))} of held-out pairs of π_SFT's"
             f" responses as gold does ({len(held_out)} seeds, one reward model each); the table's last column is its"
-            " accuracy on a pool of the policy's own responses, where the policy went."
+            " accuracy on pairs of the policy's recent responses to one prompt, where the policy went."
         )
     fell, overoptimized = falls(series, direct_variants()), []
     for variant in variants:
@@ -333,11 +345,10 @@ def rlhf_block(results=RESULTS):
         detail = f" ({'; '.join(texts)})" if texts else ""
         overoptimized.append(f"{variant} {len(texts)} of {len(last[variant]['score'])}{detail}")
     lines.append(
-        "- **Over-optimization** (Gao et al. 2022). Seeds whose gold score, per tenth of training, ended more than 10%"
-        " below its peak while the KL to π_SFT grew past its value there and the RM score ended at least as high (for"
-        " DPO, which never sees the RM, the first two), with the hack that the last tenth shows most: "
-        + ", ".join(overoptimized)
-        + f". {BLIND_SPOT}"
+        "- **Over-optimization** (Gao et al. 2022). Seeds whose gold score, per tenth of training, rose to its peak and"
+        " fell from it, each by more than twice the run's own standard error, while the KL to π_SFT grew past its"
+        " value there and the RM score ended at least as high (for DPO, which never sees the RM, all but the last),"
+        " with the hack that the last tenth shows most: " + ", ".join(overoptimized) + f". {BLIND_SPOT}"
     )
     best = read_best_of_n(folder)
     if best:

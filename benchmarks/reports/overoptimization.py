@@ -1,0 +1,395 @@
+"""The rlhf-long family: over-optimization measured as Gao et al. 2022 (arXiv:2210.10760) measured it. Runs long
+enough to pass the gold peak; gold against d = sqrt(KL[pi || pi_SFT]); their functional forms fitted for each reward
+model size, to best-of-N (R = d (alpha - beta d)) and to the RL runs (R = d (alpha - beta log d)); and the three
+claims the issue asks about, answered from those numbers: (a) does a weaker RM peak earlier and lower, (b) do runs
+with a KL penalty lie on the unpenalized run's curve, stopping earlier, and (c) does PPO fall below best-of-N at equal
+d. The figure has a panel each for the KL penalty, the group baselines, DPO (the rlhf suite's arms) and the RM size."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from reports.base import fmt, ordered_variants, provenance, save_figure
+from reports.rlhf import direct_variants, falls, fit_gao, plot_rlhf_seeds, tenths
+from reports.stats import mean_std
+from results import BEST_OF_N, RLHF_STATS, read_best_of_n, read_rlhf_series
+from suites import SUITES
+
+ORDER = 0
+SUITE = "rlhf-long"
+FORMS = {"bon": "best-of-N, d (α − β d)", "rl": "RL, d (α − β log d)"}
+
+
+def rm_pairs(variant, suite=SUITE):
+    """The --rm-pairs of a variant's flags, or the script's default (4,096)."""
+    flags = SUITES[suite].variants[variant][1]
+    return int(flags[flags.index("--rm-pairs") + 1]) if "--rm-pairs" in flags else 4096
+
+
+def best_of_n_folder(results, pairs):
+    """Where best_of_n.py's CSVs for reward models of `pairs` pairs are: the rlhf suite's own for the default size."""
+    return Path(results) / "rlhf" if pairs == 4096 else Path(results) / SUITE / f"rm{pairs}"
+
+
+def column(run, name):
+    return run[:, 1 + RLHF_STATS.index(name)]
+
+
+def points(run, gold_sft):
+    """A run's (d, gold gain over pi_SFT) at every iteration: d = sqrt(KL), the KL of that iteration's responses."""
+    import numpy as np
+
+    return np.sqrt(np.clip(column(run, "kl"), 0, None)), column(run, "gold_score") - gold_sft
+
+
+def bon_points(table):
+    """Best-of-N's (d, gold gain over N = 1) at each N, d from the KL's upper bound log N - (N - 1) / N."""
+    import numpy as np
+
+    gold = table[:, BEST_OF_N.index("gold_score")]
+    return np.sqrt(table[:, BEST_OF_N.index("kl")]), gold - gold[0]
+
+
+def curve(form, alpha, beta, d):
+    import numpy as np
+
+    d = np.asarray(d, dtype=float)
+    return d * (alpha - beta * (d if form == "bon" else np.log(np.where(d > 0, d, 1.0))))
+
+
+def cell(values, digits=2):
+    """'mean ± std (n)' of the finite values, and how many had no peak (inf), if any."""
+    finite = [v for v in values if math.isfinite(v)]
+    text = f"{fmt(*mean_std(finite))}" if finite else "–"
+    return text + (f" ({len(values) - len(finite)} without a peak)" if len(finite) < len(values) else "")
+
+
+def peak_of(run, gold_sft):
+    """The run's highest per-tenth mean gold gain, and the mean d over that tenth."""
+    import numpy as np
+
+    gain = [g - gold_sft for g in tenths(run, "gold_score")]
+    d = np.sqrt(np.clip(tenths(run, "kl"), 0, None))
+    i = int(np.argmax(gain))
+    return gain[i], float(d[i])
+
+
+def residual(run, gold_sft, form, params, d_max=math.inf):
+    """The mean of a run's gold gain minus the fitted curve at the same d, over its iterations with d <= d_max (nan
+    if none): above 0, the run lies above that curve."""
+    import numpy as np
+
+    d, gain = points(run, gold_sft)
+    keep = d <= d_max
+    return float(np.mean(gain[keep] - curve(form, *params[:2], d[keep]))) if keep.any() else float("nan")
+
+
+def verdict(values, what):
+    """'above <what>', 'below <what>' or 'within 2 standard errors of <what>', by the seeds' mean of `values` against
+    its standard error, with the numbers."""
+    finite = [v for v in values if math.isfinite(v)]
+    if len(finite) < 2:
+        return f"{finite[0]:+.2f} from {what} (1 seed)" if finite else f"not comparable with {what}"
+    mean, std = mean_std(finite)
+    se = std / math.sqrt(len(finite))
+    word = "above" if mean > 2 * se else "below" if mean < -2 * se else "within 2 standard errors of"
+    return f"{word} {what} ({mean:+.2f} ± {se:.2f}, mean ± standard error over {len(finite)} seeds)"
+
+
+def write_report(folder, runs, reference, results):
+    """Write <folder>/report.md and its curves; returns the markdown."""
+    import numpy as np
+
+    folder = Path(folder)
+    series = read_rlhf_series(folder)
+    variants = ordered_variants(SUITE, runs)
+    held_out = {
+        (r.variant, r.seed): float(r.meta["rm_held_out_accuracy"]) for r in runs if "rm_held_out_accuracy" in r.meta
+    }
+    sizes = sorted({rm_pairs(v) for v in variants})
+    best = {pairs: read_best_of_n(best_of_n_folder(results, pairs)) for pairs in sizes}
+    # pi_SFT's gold, from best-of-N's N = 1 (pi_SFT's own samples, the same for every RM of a seed), else the run's
+    # first iteration
+    gold_sft = {}
+    for tables in best.values():
+        for seed, (_, table) in tables.items():
+            gold_sft.setdefault(seed, table[0, BEST_OF_N.index("gold_score")])
+    sft_of = {key: gold_sft.get(key[1], column(run, "gold_score")[0]) for key, run in series.items()}
+
+    lines = [f"# {folder.name}: over-optimization, as Gao et al. 2022 measured it", "", "Generated by"]
+    lines[-1] += " `benchmarks/report.py`."
+    lines += ["", *provenance(runs), ""]
+    lines += [
+        "Each run trains its own stages 1 and 2 (π_SFT depends only on the seed, the reward model on the seed and its"
+        " number of pairs) and then PPO for the whole budget. d = sqrt(KL[π || π_SFT]), the KL of each iteration's"
+        " responses in nats; a gold gain is the gold score minus π_SFT's (best-of-N's N = 1 of the seed).",
+        "",
+        "| setting | RM pairs | RM accuracy, held out | gold at the end | peak gold (per tenth) | d at the peak | d at"
+        " the end | RM score at the end | spam | garbled | RM accuracy, recent pairs to one prompt | over-optimized |",
+        "|---" * 12 + "|",
+    ]
+    fell = falls(series, direct_variants())
+    for variant in variants:
+        keys = sorted(k for k in series if k[0] == variant)
+        peaks = [peak_of(series[k], sft_of[k]) for k in keys]
+        cells = [f"{rm_pairs(variant):,}", cell([held_out[k] for k in keys if k in held_out])]
+        cells.append(cell([tenths(series[k], "gold_score")[-1] for k in keys]))
+        cells.append(cell([p[0] + sft_of[k] for p, k in zip(peaks, keys, strict=True)]))
+        cells.append(cell([p[1] for p in peaks]))
+        cells.append(cell([math.sqrt(max(tenths(series[k], "kl")[-1], 0)) for k in keys]))
+        for name in ("score", "spam", "garbled", "rm_accuracy"):
+            cells.append(cell([tenths(series[k], name)[-1] for k in keys]))
+        cells.append(f"{sum(k in fell for k in keys)} of {len(keys)}")
+        lines.append(f"| {variant} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Mean ± std over seeds; the end is the mean of the last tenth of training. The RM's accuracy on recent pairs"
+        " counts the pairs of responses to one prompt, of different gold, among the last 640 the policy wrote (the"
+        " kind of pair the RM learned from); nan where the policy wrote one response a prompt. A run is over-optimized"
+        " where its gold, per tenth, rose from the first tenth to its peak and fell from the peak to the last tenth,"
+        " each by more than twice the standard error of the difference (from the iterations' spread within the"
+        " tenths), while its KL ended above its value at the peak and its RM score ended at least as high.",
+        "",
+        "Per seed:",
+        "",
+        "| setting | seed | gold: first tenth, peak, last | KL at the peak, at the end | over-optimized |",
+        "|---" * 5 + "|",
+    ]
+    for key in sorted(series, key=lambda k: (variants.index(k[0]) if k[0] in variants else 99, k[1])):
+        gold, kl = tenths(series[key], "gold_score"), tenths(series[key], "kl")
+        i = int(np.argmax(gold))
+        lines.append(
+            f"| {key[0]} | {key[1]} | {gold[0]:.2f}, {gold[i]:.2f} (tenth {i + 1}), {gold[-1]:.2f} |"
+            f" {kl[i]:.1f}, {kl[-1]:.1f} | {fell.get(key, 'no')} |"
+        )
+
+    # Gao et al.'s forms, fitted per seed: best-of-N to its 7 points, RL to every iteration of the beta-0 runs
+    fits = {}  # (form, pairs, seed) -> (alpha, beta, d*, R*)
+    for pairs in sizes:
+        for seed, (_, table) in best[pairs].items():
+            fits["bon", pairs, seed] = fit_gao(*bon_points(table), "bon")
+        for (variant, seed), run in series.items():
+            if rm_pairs(variant) == pairs and beta_of(variant) == 0:
+                fits["rl", pairs, seed] = fit_gao(*points(run, sft_of[variant, seed]), "rl")
+    lines += [
+        "",
+        "## Gao et al.'s functional forms, fitted per reward model size",
+        "",
+        "Least squares of the gold gain on each form (linear in α and β), per seed: best-of-N's 7 points (N = 1 ... 64,"
+        " at the upper bound of its KL) and every iteration of the β = 0 runs. d* is the fitted peak and R* the gain"
+        " there; a fit with β ≤ 0 has no peak. Mean ± std over seeds.",
+        "",
+        "| RM pairs | RM accuracy, held out | fit | α | β | d* | R* (gold gain at d*) | seeds |",
+        "|---" * 8 + "|",
+    ]
+    for pairs in sizes:
+        accuracy = [held_out[k] for k in held_out if rm_pairs(k[0]) == pairs]
+        for form in FORMS:
+            rows = [v for (f, p, _), v in fits.items() if f == form and p == pairs]
+            if rows:
+                cells = [cell([r[j] for r in rows]) for j in range(4)]
+                lines.append(
+                    f"| {pairs:,} | {cell(accuracy)} | {FORMS[form]} | " + " | ".join(cells) + f" | {len(rows)} |"
+                )
+    lines += ["", "## The claims, from these numbers", ""]
+    lines += claims(series, sft_of, fits, sizes, best)
+    lines += [
+        "",
+        "![gold against sqrt(KL), per panel](curves/panels.png)",
+        "",
+        "Each arm is the mean over seeds of its per-tenth points (d, gold), with a band of ± the seeds' std of gold and"
+        " its end marked (o). Every panel has best-of-N from π_SFT (dots: the mean over seeds; dashed: Gao's best-of-N"
+        " form fitted to all seeds' points, to 1.5 times its last d) and Gao's RL form fitted to the β = 0 runs"
+        " (dotted), for the default RM;"
+        " the RM-size panel has them for each size, in its color. The first three panels are the rlhf suite's arms"
+        f" ({SUITES['rlhf'].total_timesteps:,} responses a run) beside this suite's.",
+        "",
+        "Per seed, the gold score (solid, left axis) and the RM's score (dashed, right axis) against sqrt(KL), each a"
+        " moving average over 10 iterations, with the gold score's peak marked:",
+        "",
+        "![per seed](curves/seeds.png)",
+    ]
+    plot_panels(folder, series, sft_of, fits, best, results)
+    plot_rlhf_seeds(folder, series, variants)
+    text = "\n".join(lines) + "\n"
+    (folder / "report.md").write_text(text)
+    return text
+
+
+def flags_of(variant, suite=SUITE):
+    return SUITES[suite].variants[variant][1]
+
+
+def beta_of(variant, suite=SUITE):
+    """The KL coefficient of a variant: its --kl-coef, or the script's default 0.05."""
+    flags = flags_of(variant, suite)
+    return float(flags[flags.index("--kl-coef") + 1]) if "--kl-coef" in flags else 0.05
+
+
+def claims(series, sft_of, fits, sizes, best):
+    """The report's answers to (a), (b) and (c), in words that follow the numbers."""
+    import numpy as np
+
+    lines = []
+    # (a) peak and its d per RM size, from the runs (per-tenth peak) and from the fits
+    parts = []
+    by_size = {}
+    for pairs in sizes:
+        keys = [k for k in series if rm_pairs(k[0]) == pairs and beta_of(k[0]) == 0]
+        peaks = [peak_of(series[k], sft_of[k]) for k in keys]
+        by_size[pairs] = peaks
+        rl = [v for (f, p, _), v in fits.items() if f == "rl" and p == pairs]
+        parts.append(
+            f"{pairs:,} pairs: peak gain {cell([p[0] for p in peaks])} at d {cell([p[1] for p in peaks])}"
+            f" (fitted: R* {cell([r[3] for r in rl])} at d* {cell([r[2] for r in rl])})"
+        )
+    if len(sizes) > 1 and all(by_size.values()):
+        low, high = by_size[sizes[0]], by_size[sizes[-1]]
+        gain_gap = np.mean([p[0] for p in high]) - np.mean([p[0] for p in low])
+        d_gap = np.mean([p[1] for p in low]) - np.mean([p[1] for p in high])
+        se = math.sqrt(sum(np.var([p[0] for p in side], ddof=1) / len(side) for side in (low, high) if len(side) > 1))
+        lower = "lower" if gain_gap > 2 * se else "not clearly lower" if gain_gap > 0 else "not lower"
+        earlier = "earlier" if d_gap < 0 else "not earlier"
+        lines.append(
+            f"- **(a) Does a weaker RM peak earlier and lower?** Per size, β = 0 runs: {'; '.join(parts)}. The"
+            f" {sizes[0]:,}-pair RM's runs peak {lower} than the {sizes[-1]:,}-pair RM's (gap {gain_gap:+.2f} ±"
+            f" {se:.2f} standard error) and {earlier} (their peaks' mean d {d_gap:+.2f} from the stronger RM's)."
+        )
+    # (b) the penalized runs against the beta-0 runs' fitted curve, seed by seed
+    penalized = sorted(k for k in series if beta_of(k[0]) > 0)
+    res = [
+        residual(series[k], sft_of[k], "rl", fits["rl", rm_pairs(k[0]), k[1]])
+        for k in penalized
+        if ("rl", rm_pairs(k[0]), k[1]) in fits
+    ]
+    if res:
+        d_end = [math.sqrt(max(tenths(series[k], "kl")[-1], 0)) for k in penalized]
+        d_star = [fits["rl", rm_pairs(k[0]), k[1]][2] for k in penalized if ("rl", rm_pairs(k[0]), k[1]) in fits]
+        lines.append(
+            "- **(b) Does a KL penalty move a run along the β = 0 curve, or onto a better one?** The β > 0 runs' gold"
+            " gain minus the same seed's fitted β = 0 curve at the same d, averaged over their iterations, lies "
+            + verdict(res, "that curve")
+            + f". They end at d {cell(d_end)}, where the β = 0 fits peak at d* {cell(d_star)}."
+        )
+    # (c) PPO against best-of-N at equal d, within the d that best-of-N reaches
+    rows = []
+    for pairs in sizes:
+        for beta in sorted({beta_of(k[0]) for k in series if rm_pairs(k[0]) == pairs}):
+            keys = [
+                k for k in series if rm_pairs(k[0]) == pairs and beta_of(k[0]) == beta and ("bon", pairs, k[1]) in fits
+            ]
+            if not keys:
+                continue
+            d_max = {k: bon_points(best[pairs][k[1]][1])[0].max() for k in keys}
+            values = [residual(series[k], sft_of[k], "bon", fits["bon", pairs, k[1]], d_max[k]) for k in keys]
+            rows.append(f"{pairs:,} pairs, β = {beta:g}: " + verdict(values, "best-of-N"))
+    if rows:
+        lines.append(
+            "- **(c) Does PPO fall below best-of-N at equal d?** PPO's gold gain minus the same seed's fitted"
+            " best-of-N curve at the same d, over the iterations whose d best-of-N reaches (N ≤ 64): "
+            + "; ".join(rows)
+            + ". Best-of-N's d is drawn at its KL's upper bound, so at equal true KL its curve lies at least this high"
+            " where it rises."
+        )
+    return lines
+
+
+def tenth_points(run):
+    """Per tenth of a run: the mean d (sqrt of the mean KL) and the mean gold."""
+    import numpy as np
+
+    return np.sqrt(np.clip(tenths(run, "kl"), 0, None)), np.array(tenths(run, "gold_score"))
+
+
+def plot_panels(folder, series, sft_of, fits, best, results):
+    """<folder>/curves/panels.png: gold against d in four panels (the KL penalty, the group baselines, DPO, the RM
+    size), with best-of-N and Gao's fitted forms in each, and the legends under the panels."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    short_folder = Path(results) / "rlhf"
+    short = read_rlhf_series(short_folder) if (short_folder / "rlhf").is_dir() else {}
+    g0 = float(np.mean(list(sft_of.values()))) if sft_of else 0.0
+    short_names = set(SUITES["rlhf"].variants)
+
+    def arms(names, source):
+        return [
+            (f"{n} ({'long' if source is series else '12.8k'})", n, source)
+            for n in names
+            if any(k[0] == n for k in source)
+        ]
+
+    panels = [
+        (
+            "KL penalty β",
+            arms(["beta0", "beta0.05"], series)
+            + arms([n for n in ("beta0.01", "beta0.2", "adaptive") if n in short_names], short),
+        ),
+        ("group baselines (β = 0.05)", arms(["grpo", "dr-grpo", "rloo", "beta0.05"], short)),
+        ("DPO (no reward model)", arms(["dpo0.1", "dpo0.5"], short)),
+        ("reward model size (β = 0)", arms([v for v in SUITES[SUITE].variants if beta_of(v) == 0], series)),
+    ]
+    fig, axes = plt.subplots(2, 2, figsize=(11, 11), sharey=True)
+    d_max = max([float(tenth_points(run)[0].max()) for run in [*series.values(), *short.values()]] + [1.0])
+    for ax, (title, members) in zip(axes.flat, panels, strict=True):
+        rm_panel = title.startswith("reward model")
+        for i, (label, variant, source) in enumerate(members):
+            color = f"C{i}"
+            keys = sorted(k for k in source if k[0] == variant)
+            xs, ys = zip(*(tenth_points(source[k]) for k in keys), strict=True)
+            x, y = np.mean(xs, 0), np.mean(ys, 0)
+            spread = np.std(ys, 0, ddof=1) if len(keys) > 1 else np.zeros_like(y)
+            ax.plot(x, y, "-", color=color, lw=1.5, label=f"{label}, {len(keys)} seeds")
+            ax.fill_between(x, y - spread, y + spread, color=color, alpha=0.15, lw=0)
+            ax.plot(x[-1], y[-1], "o", color=color, ms=6, mfc="white", mew=1.5)
+            if rm_panel:
+                draw_reference(ax, rm_pairs(variant), fits, best, g0, d_max, color, label=False)
+        if not rm_panel:
+            draw_reference(ax, 4096, fits, best, g0, d_max, "k", label=True)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlim(0, d_max * 1.05)
+        ax.set_xlabel("d = sqrt(KL[π || π_SFT]), nats^0.5", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("gold score")
+    fig.text(
+        0.5,
+        0.01,
+        "dots: best-of-N (N = 1 ... 64), d at its KL's upper bound; dashed: its fitted d (α − β d), to 1.5 times its"
+        " last d; dotted: the β = 0 runs' fitted d (α − β log d); o: an arm's end",
+        ha="center",
+        fontsize=8,
+    )
+    fig.subplots_adjust(hspace=0.6, bottom=0.15, top=0.96)
+    return save_figure(fig, folder, "panels.png")
+
+
+def draw_reference(ax, pairs, fits, best, g0, d_max, color, label):
+    """Best-of-N's mean points and Gao's best-of-N form fitted to all seeds' points at once, to 1.5 times its last d;
+    and the RL form with the seeds' mean alpha and beta, to d_max; for one RM size."""
+    import numpy as np
+
+    tables = [t for _, t in best.get(pairs, {}).values()]
+    if tables:
+        d, gain = bon_points(np.mean(tables, 0))
+        ax.plot(d, g0 + gain, "o", color=color, ms=3, label=f"best-of-N, RM {pairs:,}" if label else None)
+        pooled = [bon_points(t) for t in tables]
+        params = fit_gao(np.concatenate([p[0] for p in pooled]), np.concatenate([p[1] for p in pooled]), "bon")
+        grid = np.linspace(0, 1.5 * d.max(), 100)
+        ax.plot(grid, g0 + curve("bon", *params[:2], grid), "--", color=color, lw=1)
+    rl = [v for (f, p, _), v in fits.items() if f == "rl" and p == pairs]
+    if rl:
+        grid = np.linspace(0.01, d_max, 200)
+        alpha, beta = np.mean([r[0] for r in rl]), np.mean([r[1] for r in rl])
+        label = f"RL fit, β = 0, RM {pairs:,}" if label else None
+        ax.plot(grid, g0 + curve("rl", alpha, beta, grid), ":", color=color, lw=1.2, label=label)
+
+
+def readme_lines(folder, results, reference, full):
+    """None: the README's RLHF block is the rlhf family's."""
+    return []
