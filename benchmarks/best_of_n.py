@@ -7,9 +7,10 @@ and DPO's runs.
     python benchmarks/best_of_n.py benchmarks/runs/rlhf/reviews__beta0.05__seed1    # stages 1-2 of that run's seed
 
 It reads the run's sft.pt and reward_model.pt (stages 1 and 2 depend only on the seed, so any arm of a seed serves)
-and writes benchmarks/results/rlhf/best_of_n/seed<N>.csv: N, the analytic KL, and the mean RM score, gold score and
-shares of well-formed, spam and garbled text of the kept responses, and how often the RM ranks pairs of them (to one
-prompt, of different gold) as gold does; after '# key: value' lines that say where and how it was made.
+and writes benchmarks/results/rlhf/best_of_n/seed<N>.csv (for a reward model of another --rm-pairs P than the
+default, benchmarks/results/rlhf-long/rm<P>/best_of_n/seed<N>.csv): N, the analytic KL, and the mean RM score, gold
+score and shares of well-formed, spam and garbled text of the kept responses, and how often the RM ranks pairs of them
+(to one prompt, of different gold) as gold does; after '# key: value' lines that say where and how it was made.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import load_script  # noqa: E402
+from reports.overoptimization import best_of_n_folder  # noqa: E402
 from results import commit, machine, versions  # noqa: E402
 
 NS = [1, 2, 4, 8, 16, 32, 64]
@@ -76,14 +78,15 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("run_dir", type=Path, help="a ppo_rlhf.py run directory with sft.pt and reward_model.pt")
     parser.add_argument("--prompts", type=int, default=256, help="prompts, each with max N responses (default 256)")
-    parser.add_argument("--out", type=Path, help="default: benchmarks/results/rlhf/best_of_n/seed<N>.csv")
+    parser.add_argument("--out", type=Path, help="default: benchmarks/results/rlhf/best_of_n/seed<N>.csv, or rm<P>/...")
     args = parser.parse_args()
     rlhf = load_script("ppo_rlhf.py")
     try:
         seed = rlhf.load_checkpoint(str(args.run_dir / "sft.pt"), rlhf.Args(), "sft")[1].seed
+        pairs = rlhf.load_checkpoint(str(args.run_dir / "reward_model.pt"), rlhf.Args(), "reward_model")[1].rm_pairs
     except ValueError as e:
         sys.exit(f"best_of_n.py: error: {e}")
-    out = args.out or ROOT / "benchmarks" / "results" / "rlhf" / "best_of_n" / f"seed{seed}.csv"
+    out = args.out or best_of_n_folder(ROOT / "benchmarks" / "results", pairs) / "best_of_n" / f"seed{seed}.csv"
     start = time.time()
     rows = best_of_n(args.run_dir, args.prompts, seed=seed)
     header = {"command": " ".join(["python", *sys.argv]), "commit": commit(["ppo_rlhf.py"], " (script modified)")}

@@ -9,7 +9,7 @@ import types
 
 import numpy as np
 import pytest
-from conftest import ROOT, fake_random, fake_run
+from conftest import ROOT, fake_random, fake_run, load_script
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import report  # noqa: E402
@@ -577,6 +577,7 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     curve lie on it, and (c) PPO lies below best-of-N, from those numbers; and draws its figure."""
     from reports import overoptimization as over
 
+    assert over.DEFAULT_PAIRS == load_script("ppo_rlhf.py").Args().rm_pairs
     folder, g0 = tmp_path / "rlhf-long", 1.0
     rl = {1024: (1.5, 1.0), 4096: (2.0, 1.0), 16384: (2.2, 0.9)}  # d* = e^(alpha / beta - 1): 1.65, 2.72, 4.2
     bon = {1024: (2.0, 0.5), 4096: (3.0, 0.5), 16384: (3.5, 0.5)}

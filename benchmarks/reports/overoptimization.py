@@ -18,18 +18,19 @@ from suites import SUITES
 
 ORDER = 0
 SUITE = "rlhf-long"
+DEFAULT_PAIRS = 4096  # ppo_rlhf.py's --rm-pairs: its best-of-N curves are the rlhf suite's
 FORMS = {"bon": "best-of-N, d (α − β d)", "rl": "RL, d (α − β log d)"}
 
 
 def rm_pairs(variant, suite=SUITE):
     """The --rm-pairs of a variant's flags, or the script's default (4,096)."""
     flags = SUITES[suite].variants[variant][1]
-    return int(flags[flags.index("--rm-pairs") + 1]) if "--rm-pairs" in flags else 4096
+    return int(flags[flags.index("--rm-pairs") + 1]) if "--rm-pairs" in flags else DEFAULT_PAIRS
 
 
 def best_of_n_folder(results, pairs):
     """Where best_of_n.py's CSVs for reward models of `pairs` pairs are: the rlhf suite's own for the default size."""
-    return Path(results) / "rlhf" if pairs == 4096 else Path(results) / SUITE / f"rm{pairs}"
+    return Path(results) / "rlhf" if pairs == DEFAULT_PAIRS else Path(results) / SUITE / f"rm{pairs}"
 
 
 def column(run, name):
@@ -349,7 +350,7 @@ def plot_panels(folder, series, sft_of, fits, best, results):
             if rm_panel:
                 draw_reference(ax, rm_pairs(variant), fits, best, g0, d_max, color, label=False)
         if not rm_panel:
-            draw_reference(ax, 4096, fits, best, g0, d_max, "k", label=True)
+            draw_reference(ax, DEFAULT_PAIRS, fits, best, g0, d_max, "k", label=True)
         ax.set_title(title, fontsize=10)
         ax.set_xlim(0, d_max * 1.05)
         ax.set_xlabel("d = sqrt(KL[π || π_SFT]), nats^0.5", fontsize=8)
