@@ -432,6 +432,17 @@ def test_ray_backend_rejects_a_bad_grid_or_address_in_one_line(tmp_path, args, m
     assert not (tmp_path / "runs").exists(), "nothing may start"
 
 
+def test_progress_reads_the_last_step_or_rlhf_iteration_a_run_printed(tmp_path):
+    job = run.make_grid("rlhf-long", ["beta0"], seeds=[1], results_root=tmp_path, runs_root=tmp_path)[0]
+    assert run.last_step(job) == 0, "no log yet"
+    job.run_dir.mkdir(parents=True)
+    log = "stage 2, reward model: step 212/212 | loss 0.2\nstage 3, PPO: iteration 400/1,600 | score +1.00\n"
+    (job.run_dir / "log.txt").write_text(log)
+    assert run.last_step(job) == job.total_timesteps // 4
+    (job.run_dir / "log.txt").write_text("step 12,345/1,000,000 | SPS 900\n")  # the gym scripts' lines
+    assert run.last_step(job) == 12_345
+
+
 def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
     rlhf = load_script("ppo_rlhf.py")
     job = run.make_grid("rlhf", ["beta0.05"], seeds=[1], results_root=tmp_path / "results", runs_root=tmp_path)[0]
