@@ -79,6 +79,7 @@ class Args:
     advantage: Literal["gae", "grpo", "dr-grpo", "rloo"] = "gae"  # gae: the critic and GAE; else a group baseline
     group_size: int = 8  # grpo, dr-grpo, rloo: responses sampled for each prompt, one group; divides --batch-size
     dpo: bool = False  # stage 3 is DPO on the reward model's own training pairs, with beta --kl-coef, in place of PPO
+    ipo: bool = False  # with --dpo, IPO's loss (Azar et al. 2023): the margin's squared distance from 1 / (2 beta)
     sft_checkpoint: str | None = None  # skip stage 1: take pi_SFT from this sft.pt
     reward_model_checkpoint: str | None = None  # skip stage 2: take the reward model from this reward_model.pt
     save_every: int = 25  # save the PPO checkpoint, and print samples, every this many iterations (and at the end)
@@ -487,7 +488,10 @@ def dpo_update(agent, optimizer, mb, args):
     for side in ("chosen", "rejected"):
         logprobs = sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"], args.temperature)
         implicit[side] = args.kl_coef * (logprobs - mb[f"{side}_ref"])
-    loss = preference_loss(implicit["chosen"], implicit["rejected"])
+    if args.ipo:  # a margin with a target, where DPO's loss falls as long as the margin grows, without bound
+        loss = (((implicit["chosen"] - implicit["rejected"]) / args.kl_coef - 1 / (2 * args.kl_coef)) ** 2).mean()
+    else:
+        loss = preference_loss(implicit["chosen"], implicit["rejected"])
     gradient_step(agent, optimizer, loss, args)
     accuracy = (implicit["chosen"] > implicit["rejected"]).float().mean()  # how often pi prefers the chosen
     return {"loss": loss.detach(), "policy_loss": loss.detach(), "implicit_accuracy": accuracy}
@@ -692,6 +696,8 @@ def check_args(args):
             raise ValueError(f"{flag(name)} {getattr(args, name)} does not divide {flag(whole)} {getattr(args, whole)}")
     if args.dpo and (args.adaptive_kl or args.kl_coef == 0 or args.advantage != "gae"):
         raise ValueError("--dpo takes its beta from a positive, fixed --kl-coef, and has no --advantage")
+    if args.ipo and not args.dpo:
+        raise ValueError("--ipo is a loss of --dpo: add --dpo")
     if args.adaptive_kl and args.kl_coef == 0:
         raise ValueError("--adaptive-kl needs a positive --kl-coef to start from: it scales beta, and 0 stays 0")
     if args.resume is None and args.total_episodes < args.batch_size:

@@ -134,7 +134,8 @@ SUITES = {
     # RLHF (issues 29, 40, 47): beta of the KL penalty to pi_SFT fixed at 0 (no leash), 0.01, 0.05 (the default) and
     # 0.2, or adapted by Ziegler et al.'s controller toward 2 nats from 0.05; the three group baselines in place of the
     # critic and GAE (GRPO, Dr. GRPO, RLOO) at beta 0.05; and DPO at the beta of Rafailov et al.'s experiments, 0.1,
-    # and at 0.5 (on seed 4, DPO's KL grew past 20 nats at beta 0.05 and settled near 6 at 0.5).
+    # and at 0.5 (on seed 4, DPO's KL grew past 20 nats at beta 0.05 and settled near 6 at 0.5); and IPO (issue 54),
+    # DPO's pairs with Azar et al.'s bounded squared loss, at DPO's 0.1.
     # Best-of-N from pi_SFT, which trains nothing, is benchmarks/best_of_n.py on each seed's stages 1 and 2.
     # "reviews" is the script's own language, not an env; the budget is in responses. Each run trains its own stages 1
     # and 2, which depend only on the seed.
@@ -150,12 +151,13 @@ SUITES = {
             "rloo": ("ppo_rlhf.py", ["--advantage", "rloo"]),
             "dpo0.1": ("ppo_rlhf.py", ["--dpo", "--kl-coef", "0.1"]),
             "dpo0.5": ("ppo_rlhf.py", ["--dpo", "--kl-coef", "0.5"]),
+            "ipo0.1": ("ppo_rlhf.py", ["--dpo", "--ipo", "--kl-coef", "0.1"]),
         },
         ["reviews"],
         [1, 2, 3],
         12_800,
         "ppo_rlhf.py with beta 0, 0.01, 0.05 (its default) and 0.2, the adaptive controller toward 2 nats, GRPO's,"
-        " Dr. GRPO's and RLOO's advantages at beta 0.05, and DPO at beta 0.1 and 0.5",
+        " Dr. GRPO's and RLOO's advantages at beta 0.05, DPO at beta 0.1 and 0.5, and IPO at 0.1",
         env_flag=None,
         budget_flag="--total-episodes",
         report="rlhf",

@@ -363,6 +363,7 @@ BAD_INPUTS = [
     (["--advantage", "grpo", "--group-size", "1"], "--group-size must be in [2, inf]"),
     (["--dpo", "--kl-coef", "0"], "--dpo takes its beta from a positive, fixed --kl-coef"),
     (["--dpo", "--advantage", "rloo"], "--dpo takes its beta from a positive, fixed --kl-coef, and has no --advantage"),
+    (["--ipo"], "--ipo is a loss of --dpo: add --dpo"),
     (["--value-model", "both"], "invalid choice"),
     (["--device", "tpu"], "--device tpu is not available"),
     (["--run-dir", "afile"], "is a file"),
@@ -555,6 +556,40 @@ def test_dpo_is_the_reward_models_loss_on_the_implicit_reward():
     rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.1), mb, args)
     after = rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)["loss"].item()
     assert after < before
+
+
+def test_ipo_is_the_squared_distance_of_the_log_ratio_margin_from_its_target():
+    """Azar et al. 2023's IPO loss, (h - 1 / (2 tau))^2 with h = log(pi(y_w) pi_SFT(y_l) / (pi(y_l) pi_SFT(y_w))), by
+    hand, at tau = --kl-coef, on a policy that has moved away from pi_SFT; and a step of it moves the margin toward
+    1 / (2 tau)."""
+    torch.manual_seed(1)
+    sft, moved = rlhf.TinyLM(16, 1, 2), rlhf.TinyLM(16, 1, 2)
+    agent = rlhf.Agent(moved, moved, "policy-head")
+    chosen, chosen_mask = tokens_of("the film was fine and the plot was superb <eos>")
+    rejected, rejected_mask = tokens_of("the film was fine and the plot was awful <eos>")
+    mb = {"chosen_tokens": chosen, "chosen_mask": chosen_mask, "rejected_tokens": rejected}
+    mb |= {"rejected_mask": rejected_mask}
+    mb |= {
+        f"{side}_ref": rlhf.sequence_logprobs(sft, mb[f"{side}_tokens"], mb[f"{side}_mask"], 1.0).detach()
+        for side in ("chosen", "rejected")
+    }
+
+    def margin():
+        return sum(
+            sign * (sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"]) - mb[f"{side}_ref"])
+            for sign, side in ((1, "chosen"), (-1, "rejected"))
+        ).item()
+
+    def sequence_logprobs(lm, tokens, mask):
+        return rlhf.sequence_logprobs(lm, tokens, mask, 1.0)
+
+    for tau in (0.5, 0.1):
+        args = rlhf.Args(kl_coef=tau, dpo=True, ipo=True)
+        h = margin()
+        stats = rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)
+        assert stats["loss"].item() == pytest.approx((h - 1 / (2 * tau)) ** 2, rel=1e-5)
+        rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.1), mb, args)
+        assert abs(margin() - 1 / (2 * tau)) < abs(h - 1 / (2 * tau))
 
 
 def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(tmp_path):

@@ -154,3 +154,21 @@ def test_the_adaptive_kl_run_feeds_its_rewards_the_controllers_beta(tmp_path):
         error = min(max(kl / args.kl_target - 1.0, -0.2), 0.2)
         assert betas[i + 1] == pytest.approx(beta * (1 + error * args.batch_size / args.kl_horizon), rel=1e-5)
     assert len(set(betas)) == len(betas), "beta moves every iteration"
+
+
+def test_an_ipo_run_trains_on_ipos_loss_and_not_dpos(tmp_path):
+    """Issue 54: with --dpo --ipo, stage 3's minibatches reach IPO's loss; DPO's log-sigmoid (the reward model's
+    Bradley-Terry loss) is then called by stage 2 alone. Stages 1 and 2 come from one checkpoint, for both runs."""
+    _, dpo = record_run(tmp_path, ["preference_loss", "dpo_update"], dpo=True, kl_coef=0.1)
+    stages = {"sft_checkpoint": str(tmp_path / "run" / "sft.pt")}
+    stages |= {"reward_model_checkpoint": str(tmp_path / "run" / "reward_model.pt")}
+    args, ipo = record_run(
+        tmp_path / "ipo", ["preference_loss", "dpo_update"], dpo=True, ipo=True, kl_coef=0.1, **stages
+    )
+    updates = len(ipo["dpo_update"])
+    assert (
+        updates == args.total_episodes // args.batch_size * args.update_epochs * args.batch_size // args.minibatch_size
+    )
+    assert len(dpo["preference_loss"]) > updates and len(ipo["preference_loss"]) == 0
+    losses = [call["out"]["loss"].item() for call in ipo["dpo_update"]]
+    assert all(loss >= 0 for loss in losses) and losses != [c["out"]["loss"].item() for c in dpo["dpo_update"]]

@@ -331,7 +331,7 @@ def plot_panels(folder, series, sft_of, fits, best, results):
             + arms([n for n in ("beta0.01", "beta0.2", "adaptive") if n in short_names], short),
         ),
         ("group baselines (β = 0.05)", arms(["grpo", "dr-grpo", "rloo", "beta0.05"], short)),
-        ("DPO (no reward model)", arms(["dpo0.1", "dpo0.5"], short)),
+        ("DPO and IPO (no reward model)", arms(["dpo0.1", "dpo0.5", "ipo0.1"], short)),
         ("reward model size (β = 0)", arms([v for v in SUITES[SUITE].variants if beta_of(v) == 0], series)),
     ]
     fig, axes = plt.subplots(2, 2, figsize=(11, 11), sharey=True)
