@@ -19,6 +19,9 @@ from suites import SUITES
 ORDER = 0
 SUITE = "rlhf-long"
 DEFAULT_PAIRS = 4096  # ppo_rlhf.py's --rm-pairs: its best-of-N curves are the rlhf suite's
+WINDOW = 20  # iterations a point stands for (1,280 responses, a tenth of an rlhf-suite run): a peak early in a long
+# run is not averaged away in a tenth of it
+D_BIN = 0.2  # the width in d of the bins a run's iterations are averaged over for a fit
 FORMS = {"bon": "best-of-N, d (α − β d)", "rl": "RL, d (α − β log d)"}
 
 
@@ -33,15 +36,23 @@ def best_of_n_folder(results, pairs):
     return Path(results) / "rlhf" if pairs == DEFAULT_PAIRS else Path(results) / SUITE / f"rm{pairs}"
 
 
+def end(run, name):
+    """The mean of a run's rlhf/<name> over its last WINDOW iterations."""
+    return tenths(run, name, width=WINDOW)[-1]
+
+
 def column(run, name):
     return run[:, 1 + RLHF_STATS.index(name)]
 
 
 def points(run, gold_sft):
-    """A run's (d, gold gain over pi_SFT) at every iteration: d = sqrt(KL), the KL of that iteration's responses."""
+    """A run's (d, gold gain over pi_SFT), its iterations averaged within bins of D_BIN in d, d = sqrt(KL) of each
+    iteration's responses: one point a bin, so that a run that stalls at one KL does not weigh that KL more."""
     import numpy as np
 
-    return np.sqrt(np.clip(column(run, "kl"), 0, None)), column(run, "gold_score") - gold_sft
+    d, gain = np.sqrt(np.clip(column(run, "kl"), 0, None)), column(run, "gold_score") - gold_sft
+    bins = np.floor(d / D_BIN)
+    return tuple(np.array([x[bins == b].mean() for b in np.unique(bins)]) for x in (d, gain))
 
 
 def bon_points(table):
@@ -59,26 +70,27 @@ def curve(form, alpha, beta, d):
     return d * (alpha - beta * (d if form == "bon" else np.log(np.where(d > 0, d, 1.0))))
 
 
-def cell(values, digits=2):
-    """'mean ± std (n)' of the finite values, and how many had no peak (inf), if any."""
+def cell(values):
+    """'mean ± std' of the finite values, and how many had no peak (inf), if any; nan (not measured) is left out."""
     finite = [v for v in values if math.isfinite(v)]
+    peakless = sum(v == math.inf for v in values)
     text = f"{fmt(*mean_std(finite))}" if finite else "–"
-    return text + (f" ({len(values) - len(finite)} without a peak)" if len(finite) < len(values) else "")
+    return text + (f" ({peakless} without a peak)" if peakless else "")
 
 
 def peak_of(run, gold_sft):
-    """The run's highest per-tenth mean gold gain, and the mean d over that tenth."""
+    """The run's highest mean gold gain over a window of WINDOW iterations, and the d of that window's mean KL."""
     import numpy as np
 
-    gain = [g - gold_sft for g in tenths(run, "gold_score")]
-    d = np.sqrt(np.clip(tenths(run, "kl"), 0, None))
+    gain = [g - gold_sft for g in tenths(run, "gold_score", width=WINDOW)]
+    d = np.sqrt(np.clip(tenths(run, "kl", width=WINDOW), 0, None))
     i = int(np.argmax(gain))
     return gain[i], float(d[i])
 
 
 def residual(run, gold_sft, form, params, d_max=math.inf):
-    """The mean of a run's gold gain minus the fitted curve at the same d, over its iterations with d <= d_max (nan
-    if none): above 0, the run lies above that curve."""
+    """The mean of a run's gold gain minus the fitted curve at the same d, over its points (bins of d) with d <= d_max
+    (nan if none): above 0, the run lies above that curve."""
     import numpy as np
 
     d, gain = points(run, gold_sft)
@@ -109,7 +121,8 @@ def write_report(folder, runs, reference, results):
         (r.variant, r.seed): float(r.meta["rm_held_out_accuracy"]) for r in runs if "rm_held_out_accuracy" in r.meta
     }
     sizes = sorted({rm_pairs(v) for v in variants})
-    best = {pairs: read_best_of_n(best_of_n_folder(results, pairs)) for pairs in sizes}
+    seeds = {seed for _, seed in series}  # best-of-N of these seeds' reward models only
+    best = {p: {s: t for s, t in read_best_of_n(best_of_n_folder(results, p)).items() if s in seeds} for p in sizes}
     # pi_SFT's gold, from best-of-N's N = 1 (pi_SFT's own samples, the same for every RM of a seed), else the run's
     # first iteration
     gold_sft = {}
@@ -126,42 +139,43 @@ def write_report(folder, runs, reference, results):
         " number of pairs) and then PPO for the whole budget. d = sqrt(KL[π || π_SFT]), the KL of each iteration's"
         " responses in nats; a gold gain is the gold score minus π_SFT's (best-of-N's N = 1 of the seed).",
         "",
-        "| setting | RM pairs | RM accuracy, held out | gold at the end | peak gold (per tenth) | d at the peak | d at"
+        "| setting | RM pairs | RM accuracy, held out | gold at the end | peak gold | d at the peak | d at"
         " the end | RM score at the end | spam | garbled | RM accuracy, recent pairs to one prompt | over-optimized |",
         "|---" * 12 + "|",
     ]
-    fell = falls(series, direct_variants())
+    fell = falls(series, direct_variants(), WINDOW)
     for variant in variants:
         keys = sorted(k for k in series if k[0] == variant)
         peaks = [peak_of(series[k], sft_of[k]) for k in keys]
         cells = [f"{rm_pairs(variant):,}", cell([held_out[k] for k in keys if k in held_out])]
-        cells.append(cell([tenths(series[k], "gold_score")[-1] for k in keys]))
+        cells.append(cell([end(series[k], "gold_score") for k in keys]))
         cells.append(cell([p[0] + sft_of[k] for p, k in zip(peaks, keys, strict=True)]))
         cells.append(cell([p[1] for p in peaks]))
-        cells.append(cell([math.sqrt(max(tenths(series[k], "kl")[-1], 0)) for k in keys]))
+        cells.append(cell([math.sqrt(max(end(series[k], "kl"), 0)) for k in keys]))
         for name in ("score", "spam", "garbled", "rm_accuracy"):
-            cells.append(cell([tenths(series[k], name)[-1] for k in keys]))
+            cells.append(cell([end(series[k], name) for k in keys]))
         cells.append(f"{sum(k in fell for k in keys)} of {len(keys)}")
         lines.append(f"| {variant} | " + " | ".join(cells) + " |")
     lines += [
         "",
-        "Mean ± std over seeds; the end is the mean of the last tenth of training. The RM's accuracy on recent pairs"
-        " counts the pairs of responses to one prompt, of different gold, among the last 640 the policy wrote (the"
-        " kind of pair the RM learned from); nan where the policy wrote one response a prompt. A run is over-optimized"
-        " where its gold, per tenth, rose from the first tenth to its peak and fell from the peak to the last tenth,"
-        " each by more than twice the standard error of the difference (from the iterations' spread within the"
-        " tenths), while its KL ended above its value at the peak and its RM score ended at least as high.",
+        f"Mean ± std over seeds of each run's means over windows of {WINDOW} iterations ({WINDOW * 64:,} responses):"
+        " its last window, and its window of highest gold (the peak). The RM's accuracy on recent pairs counts the"
+        " pairs of responses to one prompt, of different gold, among the last 640 the policy wrote (the kind of pair"
+        " the RM learned from); – where the policy wrote one response a prompt. A run is over-optimized where its gold"
+        " rose from the first window to the peak and fell from the peak to the last window, each by more than twice"
+        " the standard error of the difference (from the iterations' spread within the windows), while its KL ended"
+        " above its value at the peak and its RM score ended at least as high.",
         "",
         "Per seed:",
         "",
-        "| setting | seed | gold: first tenth, peak, last | KL at the peak, at the end | over-optimized |",
+        "| setting | seed | gold: first window, peak, last | KL at the peak, at the end | over-optimized |",
         "|---" * 5 + "|",
     ]
     for key in sorted(series, key=lambda k: (variants.index(k[0]) if k[0] in variants else 99, k[1])):
-        gold, kl = tenths(series[key], "gold_score"), tenths(series[key], "kl")
+        gold, kl = tenths(series[key], "gold_score", width=WINDOW), tenths(series[key], "kl", width=WINDOW)
         i = int(np.argmax(gold))
         lines.append(
-            f"| {key[0]} | {key[1]} | {gold[0]:.2f}, {gold[i]:.2f} (tenth {i + 1}), {gold[-1]:.2f} |"
+            f"| {key[0]} | {key[1]} | {gold[0]:.2f}, {gold[i]:.2f} (window {i + 1} of {len(gold)}), {gold[-1]:.2f} |"
             f" {kl[i]:.1f}, {kl[-1]:.1f} | {fell.get(key, 'no')} |"
         )
 
@@ -178,8 +192,10 @@ def write_report(folder, runs, reference, results):
         "## Gao et al.'s functional forms, fitted per reward model size",
         "",
         "Least squares of the gold gain on each form (linear in α and β), per seed: best-of-N's 7 points (N = 1 ... 64,"
-        " at the upper bound of its KL) and every iteration of the β = 0 runs. d* is the fitted peak and R* the gain"
-        " there; a fit with β ≤ 0 has no peak. Mean ± std over seeds.",
+        f" at the upper bound of its KL) and the β = 0 runs' iterations, averaged in bins of {D_BIN} in d (so that the"
+        " KL where a run stalls weighs as much as any other). d* is the fitted peak and R* the gain there; a fit with"
+        " β ≤ 0 has no peak. Mean ± std over seeds. Best-of-N's d reaches only"
+        f" {math.sqrt(math.log(64) - 63 / 64):.2f} (N = 64): its d* past that is an extrapolation.",
         "",
         "| RM pairs | RM accuracy, held out | fit | α | β | d* | R* (gold gain at d*) | seeds |",
         "|---" * 8 + "|",
@@ -199,7 +215,8 @@ def write_report(folder, runs, reference, results):
         "",
         "![gold against sqrt(KL), per panel](curves/panels.png)",
         "",
-        "Each arm is the mean over seeds of its per-tenth points (d, gold), with a band of ± the seeds' std of gold and"
+        f"Each arm is the mean over seeds of its points (d, gold) over windows of {WINDOW} iterations, with a band of ±"
+        " the seeds' std of gold and"
         " its end marked (o). Every panel has best-of-N from π_SFT (dots: the mean over seeds; dashed: Gao's best-of-N"
         " form fitted to all seeds' points, to 1.5 times its last d) and Gao's RL form fitted to the β = 0 runs"
         " (dotted), for the default RM;"
@@ -233,7 +250,7 @@ def claims(series, sft_of, fits, sizes, best):
     import numpy as np
 
     lines = []
-    # (a) peak and its d per RM size, from the runs (per-tenth peak) and from the fits
+    # (a) peak and its d per RM size, from the runs (their best window) and from the fits
     parts = []
     by_size = {}
     for pairs in sizes:
@@ -265,7 +282,7 @@ def claims(series, sft_of, fits, sizes, best):
         if ("rl", rm_pairs(k[0]), k[1]) in fits
     ]
     if res:
-        d_end = [math.sqrt(max(tenths(series[k], "kl")[-1], 0)) for k in penalized]
+        d_end = [math.sqrt(max(end(series[k], "kl"), 0)) for k in penalized]
         d_star = [fits["rl", rm_pairs(k[0]), k[1]][2] for k in penalized if ("rl", rm_pairs(k[0]), k[1]) in fits]
         lines.append(
             "- **(b) Does a KL penalty move a run along the β = 0 curve, or onto a better one?** The β > 0 runs' gold"
@@ -296,11 +313,11 @@ def claims(series, sft_of, fits, sizes, best):
     return lines
 
 
-def tenth_points(run):
-    """Per tenth of a run: the mean d (sqrt of the mean KL) and the mean gold."""
+def window_points(run):
+    """Per window of WINDOW iterations of a run: the mean d (sqrt of the mean KL) and the mean gold."""
     import numpy as np
 
-    return np.sqrt(np.clip(tenths(run, "kl"), 0, None)), np.array(tenths(run, "gold_score"))
+    return np.sqrt(np.clip(tenths(run, "kl", width=WINDOW), 0, None)), np.array(tenths(run, "gold_score", width=WINDOW))
 
 
 def plot_panels(folder, series, sft_of, fits, best, results):
@@ -335,13 +352,13 @@ def plot_panels(folder, series, sft_of, fits, best, results):
         ("reward model size (β = 0)", arms([v for v in SUITES[SUITE].variants if beta_of(v) == 0], series)),
     ]
     fig, axes = plt.subplots(2, 2, figsize=(11, 11), sharey=True)
-    d_max = max([float(tenth_points(run)[0].max()) for run in [*series.values(), *short.values()]] + [1.0])
+    d_max = max([float(window_points(run)[0].max()) for run in [*series.values(), *short.values()]] + [1.0])
     for ax, (title, members) in zip(axes.flat, panels, strict=True):
         rm_panel = title.startswith("reward model")
         for i, (label, variant, source) in enumerate(members):
             color = f"C{i}"
             keys = sorted(k for k in source if k[0] == variant)
-            xs, ys = zip(*(tenth_points(source[k]) for k in keys), strict=True)
+            xs, ys = zip(*(window_points(source[k]) for k in keys), strict=True)
             x, y = np.mean(xs, 0), np.mean(ys, 0)
             spread = np.std(ys, 0, ddof=1) if len(keys) > 1 else np.zeros_like(y)
             ax.plot(x, y, "-", color=color, lw=1.5, label=f"{label}, {len(keys)} seeds")
@@ -351,6 +368,7 @@ def plot_panels(folder, series, sft_of, fits, best, results):
                 draw_reference(ax, rm_pairs(variant), fits, best, g0, d_max, color, label=False)
         if not rm_panel:
             draw_reference(ax, DEFAULT_PAIRS, fits, best, g0, d_max, "k", label=True)
+        ax.plot(0, g0, "k*", ms=9, label="π_SFT" if not rm_panel else None)
         ax.set_title(title, fontsize=10)
         ax.set_xlim(0, d_max * 1.05)
         ax.set_xlabel("d = sqrt(KL[π || π_SFT]), nats^0.5", fontsize=8)
@@ -360,13 +378,13 @@ def plot_panels(folder, series, sft_of, fits, best, results):
         ax.set_ylabel("gold score")
     fig.text(
         0.5,
-        0.01,
+        0.004,
         "dots: best-of-N (N = 1 ... 64), d at its KL's upper bound; dashed: its fitted d (α − β d), to 1.5 times its"
-        " last d; dotted: the β = 0 runs' fitted d (α − β log d); o: an arm's end",
+        " last d; dotted: the β = 0 runs' fitted d (α − β log d); o: an arm's end; *: π_SFT",
         ha="center",
         fontsize=8,
     )
-    fig.subplots_adjust(hspace=0.6, bottom=0.15, top=0.96)
+    fig.subplots_adjust(hspace=0.65, bottom=0.17, top=0.96)
     return save_figure(fig, folder, "panels.png")
 
 

@@ -84,14 +84,14 @@ def fit_gao(d, gain, form):
     return float(alpha), float(beta), float(peak), float(alpha**2 / (4 * beta) if form == "bon" else beta * peak)
 
 
-def tenths(run, name, spread=False):
-    """The mean of a run's rlhf/<name> over each tenth of its iterations, in order, counted from the end: the last
-    is the mean of the last tenth, as in report.md. With `spread`, also each mean's standard error, from the spread of
-    the tenth's iterations."""
+def tenths(run, name, spread=False, width=None):
+    """The mean of a run's rlhf/<name> over each tenth of its iterations (or each `width` of them), in order, counted
+    from the end: the last is the mean of the last tenth, as in report.md. With `spread`, also each mean's standard
+    error, from the spread of its iterations."""
     import numpy as np
 
     column = run[:, 1 + RLHF_STATS.index(name)]
-    width = max(1, len(column) // 10)
+    width = width or max(1, len(column) // 10)
     first = len(column) % width
     with warnings.catch_warnings():  # an iteration with no pair of different gold has no RM accuracy: nan
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -105,23 +105,24 @@ def direct_variants():
     return {variant for variant, (_, flags) in SUITES["rlhf"].variants.items() if "--dpo" in flags}
 
 
-def falls(series, direct=()):
-    """{(variant, seed): text} for each run over-optimized (Gao et al. 2022). Its gold score, per tenth of training,
-    rose from the first tenth to its peak and fell from the peak to the last tenth, each by more than twice the
-    standard error of the difference (the run's own noise); its KL to pi_SFT ended above its value at the peak; and its
-    RM score ended at least as high as there, but for a variant in `direct` (DPO), which never sees the RM: Rafailov
-    et al. (2024) find that direct methods over-optimize too. The text names the hack by the last tenth's shares of
-    spam and garbled text."""
+def falls(series, direct=(), width=None):
+    """{(variant, seed): text} for each run over-optimized (Gao et al. 2022). Its gold score, per tenth of training (or
+    per `width` iterations), rose from the first to its peak and fell from the peak to the last, each by more than
+    twice the standard error of the difference (the run's own noise); its KL to pi_SFT ended above its value at the
+    peak; and its RM score ended at least as high as there, but for a variant in `direct` (DPO), which never sees the
+    RM: Rafailov et al. (2024) find that direct methods over-optimize too. The text names the hack by the last
+    window's shares of spam and garbled text."""
     out = {}
     for key, run in sorted(series.items()):
-        (gold, error), score, kl = tenths(run, "gold_score", spread=True), tenths(run, "score"), tenths(run, "kl")
+        (gold, error) = tenths(run, "gold_score", spread=True, width=width)
+        score, kl = tenths(run, "score", width=width), tenths(run, "kl", width=width)
         peak = max(range(len(gold)), key=gold.__getitem__)
 
         noise = [2 * (error[peak] ** 2 + e**2) ** 0.5 for e in error]  # of a difference from the peak
         rose, fell = gold[peak] - gold[0] > noise[0], gold[peak] - gold[-1] > noise[-1]
         proxy_held = key[0] in direct or score[-1] >= score[peak]
         if rose and fell and kl[-1] > kl[peak] and proxy_held:
-            spam, garbled = tenths(run, "spam")[-1], tenths(run, "garbled")[-1]
+            spam, garbled = tenths(run, "spam", width=width)[-1], tenths(run, "garbled", width=width)[-1]
             hack = f"spam {spam:.2f}" if spam >= garbled else f"garbled {garbled:.2f}"
             if max(spam, garbled) < 0.1:
                 overrates = "its implicit reward" if key[0] in direct else "the RM"
