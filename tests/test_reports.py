@@ -618,3 +618,6 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     assert "averaged over their iterations, lies within 2 standard errors of that curve (" in text
     assert "4,096 pairs, β = 0: below best-of-N (" in text and "4,096 pairs, β = 0.05: below best-of-N (" in text
     assert (folder / "curves" / "panels.png").exists() and (folder / "curves" / "seeds.png").exists()
+    summary = "\n".join(over.summary_lines(folder, tmp_path))  # the README's, beside the rlhf suite's block
+    assert "12 runs of 102,400 responses, seeds 1, 2, 3, β = 0 with reward models from 1,024, 4,096, 16,384" in summary
+    assert all(line in summary for line in text.splitlines() if line.startswith("- **("))

@@ -362,6 +362,11 @@ def rlhf_block(results=RESULTS):
             f" {mean[-1, 0]:.0f} (KL at most {kl[-1]:.2f} nats; {gold[0]:.2f} at N = 1), with the reward models"
             f" of seeds {', '.join(map(str, sorted(best)))}."
         )
+    long = Path(results) / "rlhf-long"
+    if long.is_dir() and load_runs(long):
+        from reports.overoptimization import summary_lines
+
+        lines += summary_lines(long, results)
     adaptive = [v for v, (_, flags) in SUITES["rlhf"].variants.items() if flags == ["--adaptive-kl"] and v in last]
     for variant in adaptive:
         lines.append(
