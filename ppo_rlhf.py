@@ -9,7 +9,7 @@ with PPO-Clip (Schulman et al. 2017, arXiv:1707.06347, eq. (7), (9), (11)-(12)) 
 et al. §2). The gold reward shows what the reward model cannot: whether a rising score is real.
 
     python ppo_rlhf.py                     # the three stages, on a CPU, in minutes: RM and gold scores rise
-    python ppo_rlhf.py --kl-coef 0         # no leash: the RM's score rises, the gold score peaks and falls
+    python ppo_rlhf.py --kl-coef 0         # no leash: the RM's score holds or rises as the gold score peaks and falls
     python ppo_rlhf.py --advantage grpo    # GRPO's group-relative advantage in place of the critic and GAE
 """
 
@@ -223,8 +223,8 @@ def sample_review(rng):
 
 def review_form(text):
     """How a reader takes a text: "garbled" outside the grammar, "spam" if it says a clause twice word for word, else
-    "well formed". The reward model never saw spam: pi_SFT's samples never repeat a clause, a blind spot planted in
-    its data, which a policy without a leash finds."""
+    "well formed". The reward model never saw spam (pi_SFT's samples never repeat a clause) and hardly any garbled
+    text: blind spots in its data, where a policy without a leash may find the scores that gold denies."""
     if not re.fullmatch(rf"{CLAUSE}( and {CLAUSE})* <eos>", text):
         return "garbled"
     clauses = re.findall(CLAUSE, text)
