@@ -615,7 +615,8 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     counts = {row.split("|")[1].strip(): row.split("|")[-2].strip() for row in text.splitlines() if " of 3 |" in row}
     assert counts == {"beta0": "3 of 3", "beta0.05": "0 of 3", "rm1024-beta0": "3 of 3", "rm16384-beta0": "0 of 3"}
     assert "The 1,024-pair RM's runs peak lower than the 16,384-pair RM's" in text and ") and earlier (their" in text
-    assert "averaged over their iterations, lies within 2 standard errors of that curve (" in text
+    assert "also visited, lies within 2 standard errors of that run's (" in text
+    assert "against that run's fitted curve, within 2 standard errors of it (" in text
     assert "4,096 pairs, β = 0: below best-of-N (" in text and "4,096 pairs, β = 0.05: below best-of-N (" in text
     assert (folder / "curves" / "panels.png").exists() and (folder / "curves" / "seeds.png").exists()
     summary = "\n".join(over.summary_lines(folder, tmp_path))  # the README's, beside the rlhf suite's block

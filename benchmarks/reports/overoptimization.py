@@ -98,6 +98,17 @@ def residual(run, gold_sft, form, params, d_max=math.inf):
     return float(np.mean(gain[keep] - curve(form, *params[:2], d[keep]))) if keep.any() else float("nan")
 
 
+def binned_gap(run, other, gold_sft):
+    """The mean over the bins of d that both runs visited of run's gold gain minus other's (nan if none)."""
+    import numpy as np
+
+    (d, gain), (d_other, gain_other) = points(run, gold_sft), points(other, gold_sft)
+    mine = dict(zip(np.floor(d / D_BIN), gain, strict=True))
+    theirs = dict(zip(np.floor(d_other / D_BIN), gain_other, strict=True))
+    shared = sorted(set(mine) & set(theirs))
+    return float(np.mean([mine[b] - theirs[b] for b in shared])) if shared else float("nan")
+
+
 def verdict(values, what):
     """'above <what>', 'below <what>' or 'within 2 standard errors of <what>', by the seeds' mean of `values` against
     its standard error, with the numbers."""
@@ -295,21 +306,25 @@ def claims(series, sft_of, fits, sizes, best):
             f" {sizes[0]:,}-pair RM's runs peak {lower} than the {sizes[-1]:,}-pair RM's (gap {gain_gap:+.2f} ±"
             f" {se:.2f} standard error) and {earlier} (their peaks' mean d {d_gap:+.2f} from the stronger RM's)."
         )
-    # (b) the penalized runs against the beta-0 runs' fitted curve, seed by seed
+    # (b) the penalized runs against the same seed's beta-0 run: its points in the bins of d both visited, its fit
     penalized = sorted(k for k in series if beta_of(k[0]) > 0)
-    res = [
-        residual(series[k], sft_of[k], "rl", fits["rl", rm_pairs(k[0]), k[1]])
+    unleashed = {
+        k: next((u for u in series if u[1] == k[1] and beta_of(u[0]) == 0 and rm_pairs(u[0]) == rm_pairs(k[0])), None)
         for k in penalized
-        if ("rl", rm_pairs(k[0]), k[1]) in fits
-    ]
-    if res:
-        d_end = [math.sqrt(max(end(series[k], "kl"), 0)) for k in penalized]
-        d_star = [fits["rl", rm_pairs(k[0]), k[1]][2] for k in penalized if ("rl", rm_pairs(k[0]), k[1]) in fits]
+    }
+    pairs_b = [(k, u) for k, u in unleashed.items() if u is not None and ("rl", rm_pairs(u[0]), u[1]) in fits]
+    if pairs_b:
+        gaps = [binned_gap(series[k], series[u], sft_of[k]) for k, u in pairs_b]
+        res = [residual(series[k], sft_of[k], "rl", fits["rl", rm_pairs(u[0]), u[1]]) for k, u in pairs_b]
+        d_end = [math.sqrt(max(end(series[k], "kl"), 0)) for k, _ in pairs_b]
+        d_peak = [peak_of(series[u], sft_of[u])[1] for _, u in pairs_b]
         lines.append(
             "- **(b) Does a KL penalty move a run along the β = 0 curve, or onto a better one?** The β > 0 runs' gold"
-            " gain minus the same seed's fitted β = 0 curve at the same d, averaged over their iterations, lies "
-            + verdict(res, "that curve")
-            + f". They end at d {cell(d_end)}, where the β = 0 fits peak at d* {cell(d_star)}."
+            " gain, in the bins of d that the same seed's β = 0 run also visited, lies "
+            + verdict(gaps, "that run's")
+            + "; against that run's fitted curve, "
+            + verdict(res, "it")
+            + f". They end at d {cell(d_end)}, where the β = 0 runs peaked at d {cell(d_peak)}."
         )
     # (c) PPO against best-of-N at equal d, within the d that best-of-N reaches
     rows = []
