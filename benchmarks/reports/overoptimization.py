@@ -247,9 +247,9 @@ def write_report(folder, runs, reference, results):
         "",
         "![gold against sqrt(KL), per panel](curves/panels.png)",
         "",
-        f"Each arm is the mean over seeds of its points (d, gold) over windows of {WINDOW} iterations, with a band of ±"
-        " the seeds' std of gold and"
-        " its end marked (o). Every panel has best-of-N from π_SFT (dots: the mean over seeds; dashed: Gao's best-of-N"
+        f"Each arm is its gold against d in bins of {D_BIN}: the mean over the seeds that reached a bin of each one's"
+        " mean gold there, with a band of ± their std, and each seed's end (the mean of its last window) marked"
+        " (o). Every panel has best-of-N from π_SFT (dots: the mean over seeds; dashed: Gao's best-of-N"
         " form fitted to all seeds' points, to 1.5 times its last d) and Gao's RL form fitted to the β = 0 runs"
         " (dotted), for the default RM;"
         " the RM-size panel has them for each size, in its color. The first three panels are the rlhf suite's arms"
@@ -341,12 +341,24 @@ def claims(series, sft_of, fits, sizes, best):
     if rows:
         lines.append(
             "- **(c) Does PPO fall below best-of-N at equal d?** PPO's gold gain minus the same seed's fitted"
-            " best-of-N curve at the same d, over the iterations whose d best-of-N reaches (N ≤ 64): "
+            " best-of-N curve at the same d, over its bins of d up to the largest that best-of-N reaches (N = 64): "
             + "; ".join(rows)
             + ". Best-of-N's d is drawn at its KL's upper bound, so at equal true KL its curve lies at least this high"
             " where it rises."
         )
     return lines
+
+
+def arm_curve(runs):
+    """An arm's gold against d: for each bin of D_BIN in d that a seed visited, the bin's middle, the mean over those
+    seeds of each one's mean gold in it, and their std (0 where one seed visited it)."""
+    import numpy as np
+
+    per_seed = [dict(zip(np.floor(d / D_BIN), gold, strict=True)) for d, gold in (points(run, 0.0) for run in runs)]
+    bins = sorted(set().union(*per_seed))
+    values = [[seed[b] for seed in per_seed if b in seed] for b in bins]
+    spread = [np.std(v, ddof=1) if len(v) > 1 else 0.0 for v in values]
+    return (np.array(bins) + 0.5) * D_BIN, np.array([np.mean(v) for v in values]), np.array(spread)
 
 
 def window_points(run):
@@ -394,12 +406,19 @@ def plot_panels(folder, series, sft_of, fits, best, results):
         for i, (label, variant, source) in enumerate(members):
             color = f"C{i}"
             keys = sorted(k for k in source if k[0] == variant)
-            xs, ys = zip(*(window_points(source[k]) for k in keys), strict=True)
-            x, y = np.mean(xs, 0), np.mean(ys, 0)
-            spread = np.std(ys, 0, ddof=1) if len(keys) > 1 else np.zeros_like(y)
+            x, y, spread = arm_curve([source[k] for k in keys])
             ax.plot(x, y, "-", color=color, lw=1.5, label=f"{label}, {len(keys)} seeds")
             ax.fill_between(x, y - spread, y + spread, color=color, alpha=0.15, lw=0)
-            ax.plot(x[-1], y[-1], "o", color=color, ms=6, mfc="white", mew=1.5)
+            for k in keys:  # each seed's end: seeds that end apart are not averaged into a point none of them reached
+                ax.plot(
+                    math.sqrt(max(end(source[k], "kl"), 0)),
+                    end(source[k], "gold_score"),
+                    "o",
+                    color=color,
+                    ms=5,
+                    mfc="white",
+                    mew=1.2,
+                )
             if rm_panel:
                 draw_reference(ax, rm_pairs(variant), fits, best, g0, d_max, color, label=False)
         if not rm_panel:
@@ -414,13 +433,14 @@ def plot_panels(folder, series, sft_of, fits, best, results):
         ax.set_ylabel("gold score")
     fig.text(
         0.5,
-        0.004,
+        0.99,
         "dots: best-of-N (N = 1 ... 64), d at its KL's upper bound; dashed: its fitted d (α − β d), to 1.5 times its"
         " last d; dotted: the β = 0 runs' fitted d (α − β log d); o: an arm's end; *: π_SFT",
         ha="center",
+        va="top",
         fontsize=8,
     )
-    fig.subplots_adjust(hspace=0.65, bottom=0.17, top=0.96)
+    fig.subplots_adjust(hspace=0.65, bottom=0.15, top=0.93)
     return save_figure(fig, folder, "panels.png")
 
 
