@@ -431,16 +431,11 @@ def plot_panels(folder, series, sft_of, fits, best, results):
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     for ax in axes[:, 0]:
         ax.set_ylabel("gold score")
-    fig.text(
-        0.5,
-        0.99,
+    fig.suptitle(
         "dots: best-of-N (N = 1 ... 64), d at its KL's upper bound; dashed: its fitted d (α − β d), to 1.5 times its"
         " last d; dotted: the β = 0 runs' fitted d (α − β log d); o: an arm's end; *: π_SFT",
-        ha="center",
-        va="top",
         fontsize=8,
     )
-    fig.subplots_adjust(hspace=0.65, bottom=0.15, top=0.93)
     return save_figure(fig, folder, "panels.png")
 
 
