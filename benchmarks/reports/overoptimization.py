@@ -179,6 +179,7 @@ def write_report(folder, runs, reference, results):
         " number of pairs) and then PPO for the whole budget. d = sqrt(KL[π || π_SFT]), the KL of each iteration's"
         " responses in nats; a gold gain is the gold score minus π_SFT's (best-of-N's N = 1 of the seed).",
         "",
+        *pilot_lines(folder),
         "| setting | RM pairs | RM accuracy, held out | gold at the end | peak gold | d at the peak | d at"
         " the end | RM score at the end | spam | garbled | RM accuracy, recent pairs to one prompt | over-optimized |",
         "|---" * 12 + "|",
@@ -265,6 +266,34 @@ def write_report(folder, runs, reference, results):
     text = "\n".join(lines) + "\n"
     (folder / "report.md").write_text(text)
     return text
+
+
+def pilot_lines(folder):
+    """For the suite's own folder: what the pilot runs at other budgets (folders <suite>_<budget>, seeds outside the
+    suite's) showed, from which the length was chosen."""
+    folder = Path(folder)
+    lines = []
+    for other in sorted(folder.parent.glob(f"{SUITE}_*")) if folder.name == SUITE else []:
+        for (variant, seed), run in sorted(read_rlhf_series(other).items()):
+            gold, kl = tenths(run, "gold_score", width=WINDOW), tenths(run, "kl", width=WINDOW)
+            i = max(range(len(gold)), key=gold.__getitem__)
+            link = f"[{other.name}](../{other.name}/report.md)"
+            lines.append(
+                f"- Pilot `{variant}`, seed {seed}, {len(run) * 64:,} responses ({link}):"
+                f" gold {gold[0]:.1f} in its first window of {WINDOW * 64:,} responses, {gold[i]:.1f} at its peak in"
+                f" window {i + 1} (KL {kl[i]:.1f}), {gold[-1]:.1f} at the end (KL {kl[-1]:.1f})."
+            )
+    if lines:
+        lines = [
+            f"The length, {SUITES[SUITE].total_timesteps:,} responses, is that of the pilot runs below, on a seed"
+            " outside the suite's, chosen from them: where the rlhf suite's β = 0 seeds had not all fallen by"
+            f" {SUITES['rlhf'].total_timesteps:,} responses, the pilots peaked within their first tenth and fell long"
+            " before their end, so a peak several times later would still show.",
+            "",
+            *lines,
+            "",
+        ]
+    return lines
 
 
 def flags_of(variant, suite=SUITE):
