@@ -78,6 +78,11 @@ def cell(values):
     return text + (f" ({peakless} without a peak)" if peakless else "")
 
 
+def per_seed(values):
+    """'seed: value' for each seed, a † after a value from a peak past the data ({seed: (value, past)})."""
+    return "; ".join(f"{seed}: {fmt(v)}{'†' if past else ''}" for seed, (v, past) in sorted(values.items()))
+
+
 def peak_of(run, gold_sft):
     """The run's highest mean gold gain over a window of WINDOW iterations, and the d of that window's mean KL."""
     import numpy as np
@@ -140,13 +145,15 @@ def measure(folder, runs, results):
             gold_sft.setdefault(seed, table[0, BEST_OF_N.index("gold_score")])
     sft_of = {key: gold_sft.get(key[1], column(run, "gold_score")[0]) for key, run in series.items()}
     # Gao et al.'s forms, fitted per seed: best-of-N to its 7 points, RL to the beta-0 runs' bins of d
-    fits = {}  # (form, pairs, seed) -> (alpha, beta, d*, R*)
+    fits = {}  # (form, pairs, seed) -> (alpha, beta, d*, R*, the largest d fitted)
     for pairs in sizes:
         for seed, (_, table) in best[pairs].items():
-            fits["bon", pairs, seed] = fit_gao(*bon_points(table), "bon")
+            d, gain = bon_points(table)
+            fits["bon", pairs, seed] = (*fit_gao(d, gain, "bon"), float(d.max()))
         for (variant, seed), run in series.items():
             if rm_pairs(variant) == pairs and beta_of(variant) == 0:
-                fits["rl", pairs, seed] = fit_gao(*points(run, sft_of[variant, seed]), "rl")
+                d, gain = points(run, sft_of[variant, seed])
+                fits["rl", pairs, seed] = (*fit_gao(d, gain, "rl"), float(d.max()))
     return series, variants, held_out, sizes, best, sft_of, fits
 
 
@@ -226,22 +233,24 @@ def write_report(folder, runs, reference, results):
         "",
         "Least squares of the gold gain on each form (linear in α and β), per seed: best-of-N's 7 points (N = 1 ... 64,"
         f" at the upper bound of its KL) and the β = 0 runs' iterations, averaged in bins of {D_BIN} in d (so that the"
-        " KL where a run stalls weighs as much as any other). d* is the fitted peak and R* the gain there; a fit with"
-        " β ≤ 0 has no peak. Mean ± std over seeds. Best-of-N's d reaches only"
-        f" {math.sqrt(math.log(64) - 63 / 64):.2f} (N = 64): its d* past that is an extrapolation.",
+        " KL where a run stalls weighs as much as any other). α and β: mean ± std over seeds. d* is the fitted peak"
+        " and the gold there π_SFT's plus the fitted gain R*, seed by seed (seed: value); † marks a peak past the"
+        " largest d fitted, an extrapolation (best-of-N's d reaches"
+        f" {math.sqrt(math.log(64) - 63 / 64):.2f}, at N = 64); a fit with β ≤ 0 has no peak (inf).",
         "",
-        "| RM pairs | RM accuracy, held out | fit | α | β | d* | R* (gold gain at d*) | seeds |",
-        "|---" * 8 + "|",
+        "| RM pairs | RM accuracy, held out | fit | α | β | d*, per seed | gold at d*, per seed |",
+        "|---" * 7 + "|",
     ]
+    g0 = {seed: value for (_, seed), value in sft_of.items()}
     for pairs in sizes:
         accuracy = [held_out[k] for k in held_out if rm_pairs(k[0]) == pairs]
         for form in FORMS:
-            rows = [v for (f, p, _), v in fits.items() if f == form and p == pairs]
+            rows = {seed: v for (f, p, seed), v in sorted(fits.items()) if f == form and p == pairs}
             if rows:
-                cells = [cell([r[j] for r in rows]) for j in range(4)]
-                lines.append(
-                    f"| {pairs:,} | {cell(accuracy)} | {FORMS[form]} | " + " | ".join(cells) + f" | {len(rows)} |"
-                )
+                cells = [cell([r[j] for r in rows.values()]) for j in range(2)]
+                cells.append(per_seed({seed: (r[2], r[2] > r[4]) for seed, r in rows.items()}))
+                cells.append(per_seed({seed: (g0[seed] + r[3], r[2] > r[4]) for seed, r in rows.items()}))
+                lines.append(f"| {pairs:,} | {cell(accuracy)} | {FORMS[form]} | " + " | ".join(cells) + " |")
     lines += ["", "## The claims, from these numbers", ""]
     lines += claims(series, sft_of, fits, sizes, best)
     lines += [
@@ -318,10 +327,10 @@ def claims(series, sft_of, fits, sizes, best):
         keys = [k for k in series if rm_pairs(k[0]) == pairs and beta_of(k[0]) == 0]
         peaks = [peak_of(series[k], sft_of[k]) for k in keys]
         by_size[pairs] = peaks
-        rl = [v for (f, p, _), v in fits.items() if f == "rl" and p == pairs]
+        rl = [v for (f, p, _), v in sorted(fits.items()) if f == "rl" and p == pairs]
         parts.append(
             f"{pairs:,} pairs: peak gain {cell([p[0] for p in peaks])} at d {cell([p[1] for p in peaks])}"
-            f" (fitted: R* {cell([r[3] for r in rl])} at d* {cell([r[2] for r in rl])})"
+            f" (fitted d*, per seed: {per_seed({i: (r[2], r[2] > r[4]) for i, r in enumerate(rl, 1)})})"
         )
     if len(sizes) > 1 and all(by_size.values()):
         low, high = by_size[sizes[0]], by_size[sizes[-1]]
