@@ -168,6 +168,13 @@ def summary_lines(folder, results):
         f" reward models from {', '.join(f'{p:,}' for p in sizes)} pairs and β = 0.05; [report, fits and figure]"
         "(results/rlhf-long/report.md)), as Gao et al. 2022 measured over-optimization:"
     ]
+    fell = falls(series, direct_variants(), WINDOW)
+    counts = []
+    for variant in ordered_variants(SUITE, runs):
+        keys = [k for k in series if k[0] == variant]
+        garbled = sum(k in fell and end(series[k], "garbled") > 0.5 for k in keys)
+        counts.append(f"{variant} {sum(k in fell for k in keys)} of {len(keys)} ({garbled} onto garbled text)")
+    lines.append(f"  - **Over-optimized** (the rule above, over windows of {WINDOW} iterations): {', '.join(counts)}.")
     return lines + [f"  {line}" for line in claims(series, sft_of, fits, sizes, best)]
 
 
