@@ -445,13 +445,15 @@ def plot_panels(folder, series, sft_of, fits, best, results):
         ("reward model size (β = 0)", arms([v for v in SUITES[SUITE].variants if beta_of(v) == 0], series)),
     ]
     fig, axes = plt.subplots(2, 2, figsize=(11, 11), sharey=True)
-    d_max = max([float(window_points(run)[0].max()) for run in [*series.values(), *short.values()]] + [1.0])
+    low, high = g0, g0  # the gold the arms reach, to which the fitted curves are cut
     for ax, (title, members) in zip(axes.flat, panels, strict=True):
         rm_panel = title.startswith("reward model")
+        d_max = 1.5 * math.sqrt(math.log(64) - 63 / 64)  # the panel's widest d: best-of-N's dashed curve, or an arm's
         for i, (label, variant, source) in enumerate(members):
             color = f"C{i}"
             keys = sorted(k for k in source if k[0] == variant)
             x, y, spread = arm_curve([source[k] for k in keys])
+            d_max, low, high = max(d_max, x.max()), min(low, (y - spread).min()), max(high, (y + spread).max())
             ax.plot(x, y, "-", color=color, lw=1.5, label=f"{label}, {len(keys)} seeds")
             ax.fill_between(x, y - spread, y + spread, color=color, alpha=0.15, lw=0)
             for k in keys:  # each seed's end: seeds that end apart are not averaged into a point none of them reached
@@ -465,28 +467,30 @@ def plot_panels(folder, series, sft_of, fits, best, results):
                     mew=1.2,
                 )
             if rm_panel:
-                draw_reference(ax, rm_pairs(variant), fits, best, g0, d_max, color, label=False)
+                draw_reference(ax, rm_pairs(variant), fits, best, g0, color, label=False)
         if not rm_panel:
-            draw_reference(ax, DEFAULT_PAIRS, fits, best, g0, d_max, "k", label=True)
+            draw_reference(ax, DEFAULT_PAIRS, fits, best, g0, "k", label=True)
         ax.plot(0, g0, "k*", ms=9, label="π_SFT" if not rm_panel else None)
         ax.set_title(title, fontsize=10)
         ax.set_xlim(0, d_max * 1.05)
         ax.set_xlabel("d = sqrt(KL[π || π_SFT]), nats^0.5", fontsize=8)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
+    axes[0, 0].set_ylim(low - 1, high + 1)
     for ax in axes[:, 0]:
         ax.set_ylabel("gold score")
     fig.suptitle(
         "dots: best-of-N (N = 1 ... 64), d at its KL's upper bound; dashed: its fitted d (α − β d), to 1.5 times its"
-        " last d; dotted: the β = 0 runs' fitted d (α − β log d); o: an arm's end; *: π_SFT",
+        " last d; dotted: the β = 0 runs' fitted d (α − β log d), to their largest d; o: each seed's end; *: π_SFT",
         fontsize=8,
     )
     return save_figure(fig, folder, "panels.png")
 
 
-def draw_reference(ax, pairs, fits, best, g0, d_max, color, label):
+def draw_reference(ax, pairs, fits, best, g0, color, label):
     """Best-of-N's mean points and Gao's best-of-N form fitted to all seeds' points at once, to 1.5 times its last d;
-    and the RL form with the seeds' mean alpha and beta, to d_max; for one RM size."""
+    and the RL form with the seeds' mean alpha and beta, to the mean of the largest d the seeds' fits saw; for one RM
+    size."""
     import numpy as np
 
     tables = [t for _, t in best.get(pairs, {}).values()]
@@ -499,7 +503,7 @@ def draw_reference(ax, pairs, fits, best, g0, d_max, color, label):
         ax.plot(grid, g0 + curve("bon", *params[:2], grid), "--", color=color, lw=1)
     rl = [v for (f, p, _), v in fits.items() if f == "rl" and p == pairs]
     if rl:
-        grid = np.linspace(0.01, d_max, 200)
+        grid = np.linspace(0.01, np.mean([r[4] for r in rl]), 200)
         alpha, beta = np.mean([r[0] for r in rl]), np.mean([r[1] for r in rl])
         label = f"RL fit, β = 0, RM {pairs:,}" if label else None
         ax.plot(grid, g0 + curve("rl", alpha, beta, grid), ":", color=color, lw=1.2, label=label)
