@@ -529,8 +529,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
     num_iterations = args.total_episodes // args.batch_size
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     kl_coef = checkpoint["kl_coef"] if checkpoint else args.kl_coef
-    # The RM's accuracy is measured on the last POOL responses, which hold more pairs to one prompt than one rollout.
-    pool = checkpoint["rm_pool"] if checkpoint else torch.zeros(3, 0, device=device)
+    # The RM's accuracy is measured on the last POOL responses (an older checkpoint's pool, without prompts, is dropped)
+    pool = checkpoint["rm_pool"] if checkpoint and len(checkpoint["rm_pool"]) == 3 else torch.zeros(3, 0, device=device)
     start_iteration = checkpoint["iteration"] + 1 if checkpoint else 1
     # DPO's pairs are stage 2's, drawn with stage 2's seed: before stage 3's random state is set or restored
     pairs = dpo_pairs(reference, args, device) if args.dpo else None

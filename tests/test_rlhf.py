@@ -602,7 +602,8 @@ def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(tmp_path):
 
 def test_a_stopped_dpo_run_resumes_bit_for_bit(tmp_path):
     """DPO's pairs are drawn with stage 2's seed before stage 3's random state is set or restored: a run stopped at its
-    first checkpoint and resumed ends where an uninterrupted one does."""
+    first checkpoint and resumed ends where an uninterrupted one does; also from a checkpoint whose RM-accuracy pool
+    has no prompts, as before the accuracy counted pairs to one prompt."""
     flags = {"dpo": True, "kl_coef": 0.1, "save_every": 2}
     whole, _ = rlhf.train(rlhf_tiny_args(tmp_path, "whole", **flags))
 
@@ -612,7 +613,9 @@ def test_a_stopped_dpo_run_resumes_bit_for_bit(tmp_path):
 
     with pytest.raises(rlhf.Stopped):
         rlhf.train(rlhf_tiny_args(tmp_path, "cut", **flags), AtFirstCheckpoint())
-    assert torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)["iteration"] == 2
+    checkpoint = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)
+    assert checkpoint["iteration"] == 2 and checkpoint["rm_pool"].shape[0] == 3
+    torch.save(checkpoint | {"rm_pool": checkpoint["rm_pool"][:2]}, tmp_path / "cut" / "checkpoint.pt")  # (score, gold)
     resumed, _ = rlhf.train(rlhf_tiny_args(tmp_path, "cut", resume=str(tmp_path / "cut" / "checkpoint.pt"), **flags))
     assert all(
         torch.equal(a, b) for a, b in zip(whole.state_dict().values(), resumed.state_dict().values(), strict=True)
