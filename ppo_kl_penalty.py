@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
+import torch._dynamo  # noqa: F401 (before torchrun's process group: see main())
 import torch.distributed as dist
 import torch.nn as nn
 from torch.distributions import Independent, Normal
@@ -731,6 +732,8 @@ def main():
     if "WORLD_SIZE" in os.environ:  # torchrun: this process is one of the P ranks of one run (one GPU each, with cuda)
         if pick_device(args.device).type == "cuda":
             torch.cuda.set_device(int(os.environ["LOCAL_RANK"]))
+        # torch._dynamo is imported at the top, before the group: imported after it (by Adam's first step), it holds
+        # the group past destroy_process_group, and gloo's threads, alive as the interpreter exits, can abort the exit.
         dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
         if dist.get_rank() > 0:  # rank 0 speaks for the run; the others' errors still reach stderr
             sys.stdout = open(os.devnull, "w")

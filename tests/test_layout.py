@@ -191,13 +191,13 @@ def test_the_weight_can_fail():
 REACHED = {
     ("ppo_rlhf.py", "lines"): 780,  # DPO (issue 47), the hack's metrics; run dirs (55); IPO, one-prompt pairs (54)
     # torchrun (issue 53: the section MANY PROCESSES, the normalizers' merge, one record, the ranks' stops and faults),
-    # run dirs made atomically and filming checked before the run (issue 55)
-    ("ppo_continuous.py", "lines"): 751,
-    ("ppo_continuous.py", "code_chars"): 23_272,
-    ("ppo_atari.py", "lines"): 700,
-    ("ppo_atari.py", "code_chars"): 21_917,
-    ("ppo_kl_penalty.py", "lines"): 765,
-    ("ppo_kl_penalty.py", "code_chars"): 23_634,
+    # run dirs made atomically and filming checked before the run (issue 55); torch._dynamo imported before the group
+    ("ppo_continuous.py", "lines"): 754,
+    ("ppo_continuous.py", "code_chars"): 23_292,
+    ("ppo_atari.py", "lines"): 703,
+    ("ppo_atari.py", "code_chars"): 21_937,
+    ("ppo_kl_penalty.py", "lines"): 768,
+    ("ppo_kl_penalty.py", "code_chars"): 23_654,
 }
 NOT_MET = set(REACHED)
 CASES = [
