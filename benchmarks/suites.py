@@ -164,9 +164,8 @@ SUITES = {
     ),
     # Over-optimization as Gao et al. 2022 (arXiv:2210.10760) measured it (issue 54): runs long enough to pass the gold
     # peak, at beta 0 and at the default 0.05, and beta 0 with reward models from 1,024, 4,096 (the default) and 16,384
-    # pairs. The length, 8 times the rlhf suite's, is a pilot's on seed 4, outside the reported seeds (its results:
-    # rlhf-long_102400/): its beta-0 run rose for 4,000 responses and fell onto garbled text by 6,400, where the rlhf
-    # suite's seeds had not fallen by 12,800; 8 times leaves a later peak room to show, at what 2 cores afford.
+    # pairs. The length, 8 times the rlhf suite's, is that of pilot runs on seed 4, outside the reported seeds (their
+    # results and what they showed: rlhf-long_102400/, and this suite's report).
     # Best-of-N from each seed's pi_SFT and each reward model is benchmarks/best_of_n.py on the runs' stages 1 and 2.
     "rlhf-long": Suite(
         {
