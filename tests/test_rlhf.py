@@ -531,9 +531,9 @@ def test_sequence_logprobs_sum_each_responses_token_log_probs():
     assert rlhf.sequence_logprobs(lm, tokens, mask, 1.0).tolist() == pytest.approx(expected, abs=1e-5)
 
 
-def test_dpo_is_the_reward_models_loss_on_the_implicit_reward():
-    """-log sigmoid(beta ((log pi - log pi_SFT)(y_w) - (log pi - log pi_SFT)(y_l))), by hand, on a policy that has
-    moved away from pi_SFT; and a step of it raises pi's preference for the chosen response."""
+def moved_policy_and_pair():
+    """An agent whose policy has moved away from pi_SFT (another random init), and a minibatch of one preference pair
+    with pi_SFT's log-prob of each response, as dpo_update takes it."""
     torch.manual_seed(1)
     sft, moved = rlhf.TinyLM(16, 1, 2), rlhf.TinyLM(16, 1, 2)
     agent = rlhf.Agent(moved, moved, "policy-head")
@@ -545,11 +545,23 @@ def test_dpo_is_the_reward_models_loss_on_the_implicit_reward():
         f"{side}_ref": rlhf.sequence_logprobs(sft, mb[f"{side}_tokens"], mb[f"{side}_mask"], 1.0).detach()
         for side in ("chosen", "rejected")
     }
-    args = rlhf.Args(kl_coef=0.5)
-    margin = sum(
-        sign * (rlhf.sequence_logprobs(moved, mb[f"{side}_tokens"], mb[f"{side}_mask"], 1.0) - mb[f"{side}_ref"])
+    return agent, mb
+
+
+def log_ratio_margin(lm, mb):
+    """(log pi - log pi_SFT)(y_w) - (log pi - log pi_SFT)(y_l), by hand."""
+    return sum(
+        sign * (rlhf.sequence_logprobs(lm, mb[f"{side}_tokens"], mb[f"{side}_mask"], 1.0) - mb[f"{side}_ref"])
         for sign, side in ((1, "chosen"), (-1, "rejected"))
     ).item()
+
+
+def test_dpo_is_the_reward_models_loss_on_the_implicit_reward():
+    """-log sigmoid(beta ((log pi - log pi_SFT)(y_w) - (log pi - log pi_SFT)(y_l))), by hand, on a policy that has
+    moved away from pi_SFT; and a step of it raises pi's preference for the chosen response."""
+    agent, mb = moved_policy_and_pair()
+    args = rlhf.Args(kl_coef=0.5)
+    margin = log_ratio_margin(agent.policy, mb)
     stats = rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)
     assert stats["loss"].item() == pytest.approx(math.log(1 + math.exp(-0.5 * margin)), rel=1e-5)
     before = stats["loss"].item()
@@ -562,34 +574,14 @@ def test_ipo_is_the_squared_distance_of_the_log_ratio_margin_from_its_target():
     """Azar et al. 2023's IPO loss, (h - 1 / (2 tau))^2 with h = log(pi(y_w) pi_SFT(y_l) / (pi(y_l) pi_SFT(y_w))), by
     hand, at tau = --kl-coef, on a policy that has moved away from pi_SFT; and a step of it moves the margin toward
     1 / (2 tau)."""
-    torch.manual_seed(1)
-    sft, moved = rlhf.TinyLM(16, 1, 2), rlhf.TinyLM(16, 1, 2)
-    agent = rlhf.Agent(moved, moved, "policy-head")
-    chosen, chosen_mask = tokens_of("the film was fine and the plot was superb <eos>")
-    rejected, rejected_mask = tokens_of("the film was fine and the plot was awful <eos>")
-    mb = {"chosen_tokens": chosen, "chosen_mask": chosen_mask, "rejected_tokens": rejected}
-    mb |= {"rejected_mask": rejected_mask}
-    mb |= {
-        f"{side}_ref": rlhf.sequence_logprobs(sft, mb[f"{side}_tokens"], mb[f"{side}_mask"], 1.0).detach()
-        for side in ("chosen", "rejected")
-    }
-
-    def margin():
-        return sum(
-            sign * (sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"]) - mb[f"{side}_ref"])
-            for sign, side in ((1, "chosen"), (-1, "rejected"))
-        ).item()
-
-    def sequence_logprobs(lm, tokens, mask):
-        return rlhf.sequence_logprobs(lm, tokens, mask, 1.0)
-
+    agent, mb = moved_policy_and_pair()
     for tau in (0.5, 0.1):
         args = rlhf.Args(kl_coef=tau, dpo=True, ipo=True)
-        h = margin()
+        h = log_ratio_margin(agent.policy, mb)
         stats = rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)
         assert stats["loss"].item() == pytest.approx((h - 1 / (2 * tau)) ** 2, rel=1e-5)
         rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.1), mb, args)
-        assert abs(margin() - 1 / (2 * tau)) < abs(h - 1 / (2 * tau))
+        assert abs(log_ratio_margin(agent.policy, mb) - 1 / (2 * tau)) < abs(h - 1 / (2 * tau))
 
 
 def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(tmp_path):
