@@ -406,13 +406,6 @@ def arm_curve(runs):
     return (np.array(bins) + 0.5) * D_BIN, np.array([np.mean(v) for v in values]), np.array(spread)
 
 
-def window_points(run):
-    """Per window of WINDOW iterations of a run: the mean d (sqrt of the mean KL) and the mean gold."""
-    import numpy as np
-
-    return np.sqrt(np.clip(tenths(run, "kl", width=WINDOW), 0, None)), np.array(tenths(run, "gold_score", width=WINDOW))
-
-
 def plot_panels(folder, series, sft_of, fits, best, results):
     """<folder>/curves/panels.png: gold against d in four panels (the KL penalty, the group baselines, DPO, the RM
     size), with best-of-N and Gao's fitted forms in each, and the legends under the panels."""
