@@ -539,9 +539,9 @@ class Log:
             self.writer.add_scalar(f"losses/{name}", value, step)
         if time.time() - self.printed > 10 or step == self.total_steps:
             self.printed = time.time()
-            mean = np.mean(self.recent) if self.recent else np.nan  # the return of the last 100 episodes
+            mean = f"{np.mean(self.recent):.1f}" if self.recent else "-"  # the return of the last 100 episodes
             eta = (self.total_steps - step) / max(sps, 1) / 60
-            print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean:.1f} | ETA {eta:.1f} min", flush=True)
+            print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean} | ETA {eta:.1f} min", flush=True)
 
 
 # A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.

@@ -582,9 +582,9 @@ class Log:
             self.writer.add_scalar(f"losses/{name}", value, step)
         if time.time() - self.printed > 10 or step == self.total_steps:
             self.printed = time.time()
-            mean = np.mean(self.recent) if self.recent else np.nan  # the return of the last 100 episodes
+            mean = f"{np.mean(self.recent):.1f}" if self.recent else "-"  # the return of the last 100 episodes
             eta = (self.total_steps - step) / max(sps, 1) / 60
-            print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean:.1f} | ETA {eta:.1f} min", flush=True)
+            print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean} | ETA {eta:.1f} min", flush=True)
 
 
 # A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
@@ -655,7 +655,7 @@ def check_args(args):
         raise ValueError(f"torchrun's {world_size} processes must divide {sizes}: each takes an equal share")
     try:
         env = gym.make(args.env_id)
-    except gym.error.Error as e:
+    except (gym.error.Error, ImportError) as e:  # an unknown id, or a module:id whose module is not found
         hint = ". Use ppo_atari.py for Atari games" if re.search(r"ALE/|NoFrameskip|Deterministic", args.env_id) else ""
         raise ValueError(f"unknown env id {args.env_id!r}: {e}{hint}") from None
     env.close()

@@ -14,7 +14,10 @@ ROOT = Path(__file__).resolve().parent.parent
 def load_script(name):
     """Import one of the ppo_*.py scripts as a module, without running its __main__. Its module name is
     prefixed, so that it never replaces a module of the same file that someone else imported (the tests'
-    doctests, for one, find a module's examples through sys.modules)."""
+    doctests, for one, find a module's examples through sys.modules). Its folder goes on sys.path, as when Python runs
+    it, so that an env id's module beside it (roboschool_humanoid:...) imports."""
+    if str((ROOT / name).parent) not in sys.path:
+        sys.path.append(str((ROOT / name).parent))
     spec = importlib.util.spec_from_file_location("benchmarks_" + Path(name).stem, ROOT / name)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses look their module up here

@@ -65,7 +65,7 @@ class Job:
 
     @property
     def name(self):
-        return f"{self.env_id}__{self.variant}__seed{self.seed}"
+        return f"{self.env_id.split(':')[-1]}__{self.variant}__seed{self.seed}"  # a module:id, named by its id
 
     @property
     def csv(self):
@@ -118,7 +118,8 @@ def results_folder(suite, total_timesteps):
 
 def resolve_env(name, known):
     """'Hopper' or 'Hopper-v5' -> 'Hopper-v5' from the suite's list; any other id is taken as given."""
-    matches = [env for env in known if env == name or env.split("-v")[0] == name or env.split("NoFrameskip")[0] == name]
+    ids = {env: env.split(":")[-1] for env in known}  # a module:id by its id alone, too
+    matches = [env for env, id in ids.items() if name in (env, id, id.split("-v")[0], id.split("NoFrameskip")[0])]
     return matches[0] if matches else name
 
 

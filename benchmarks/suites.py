@@ -25,6 +25,12 @@ TABLE4 = shlex.split(
     "--num-envs 32 --num-steps 512 --update-epochs 15 --minibatch-size 4096"
     " --anneal-logstd -0.7 -1.6 --no-anneal-lr --lr-target-kl 0.01"
 )
+# Table 4's 128 actors, which the paper gave its flagrun tasks.
+TABLE4_128 = [("128" if flag == "32" else flag) for flag in TABLE4]
+# The paper's three humanoid tasks with Roboschool's rules on MuJoCo (issue 59), loaded by gymnasium's module:id form.
+ROBOSCHOOL = [
+    f"roboschool_humanoid:{task}-v0" for task in ("HumanoidForward", "HumanoidFlagrun", "HumanoidFlagrunHarder")
+]
 
 
 @dataclass
@@ -212,6 +218,19 @@ SUITES = {
         ranks={"table4-2ranks": 2},
         report="humanoid",
         in_readme=True,
+    ),
+    # Figure 4's three tasks (issue 59), each run in 2 processes under torchrun: the forward walk with Table 4's 32
+    # actors, the flagrun tasks with its 128. 50M steps (the figure's flagrun axes reach 100M) for seed 1 of the flagrun
+    # tasks; the 10M pilots and seeds 2-3 run at --total-timesteps 10027008 (results/roboschool_10027k/).
+    "roboschool": Suite(
+        {"table4": ("ppo_continuous.py", TABLE4), "table4-128": ("ppo_continuous.py", TABLE4_128)},
+        ROBOSCHOOL,
+        [1, 2, 3],
+        50_003_968,  # 763 batches of 128 x 512: the first whole batch past 50M steps
+        "ppo_continuous.py with Table 4 in 2 processes on roboschool_humanoid.py's tasks (128 actors for flagrun)",
+        only={"table4": (ROBOSCHOOL[:1], [1, 2, 3]), "table4-128": (ROBOSCHOOL[1:], [1, 2, 3])},
+        ranks={"table4": 2, "table4-128": 2},
+        report="humanoid",
     ),
 }
 
