@@ -90,9 +90,9 @@ def humanoid_model(cube, width, height):
         motor.gear[0] = POWER * power
         motor.ctrllimited = True
         motor.ctrlrange = [-1.0, 1.0]
-    camera = spec.camera("track")  # follows the body's centre of mass, from 8 m behind and 6 m above, looking down
-    camera.pos = [0.0, -8.0, 6.0]
-    camera.alt.xyaxes = [1.0, 0.0, 0.0, 0.0, 0.6, 0.8]
+    camera = spec.camera("track")  # follows the body's centre of mass from 6 m to the side and 4 m up, looking at it
+    camera.pos = [0.0, -6.0, 4.0]
+    camera.alt.xyaxes = [1.0, 0.0, 0.0, 0.0, 0.555, 0.832]
     flag = spec.worldbody.add_body(name="flag", mocap=True)
     marker = dict(contype=0, conaffinity=0, rgba=[0.9, 0.2, 0.2, 1.0])
     flag.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, 0, 0, 1.5], size=[0.03, 0, 0], **marker)
@@ -172,11 +172,11 @@ class HumanoidForward(MujocoEnv):
         self.frame = 0
         self.feet_contact = np.zeros(2)
         self.target = np.array([1e3, 0.0])
-        self.flags_reached = 0
         self.cubes_thrown = 0
         self.task_reset()
         state = self.calc_state()
         self.potential = self.calc_potential()
+        self.flags_reached = 0  # a flag placed within reach of the start is not one reached
         return state
 
     def task_reset(self):
@@ -206,6 +206,10 @@ class HumanoidForward(MujocoEnv):
 
     def calc_state(self):
         return self.humanoid_state()
+
+    def render(self):
+        mujoco.mj_kinematics(self.model, self.data)  # the flag where calc_state() last moved it
+        return super().render()
 
     def calc_potential(self):
         """Progress is the change of this potential: a step toward the target of speed x dt earns speed (m/s)."""
@@ -272,7 +276,7 @@ class HumanoidFlagrun(HumanoidForward):
         self.flag_timeout -= 1
         state = self.humanoid_state()
         if self.walk_target_dist < 1 or self.flag_timeout <= 0:
-            self.flags_reached += bool(self.walk_target_dist < 1 and self.frame > 0)
+            self.flags_reached += bool(self.walk_target_dist < 1)
             self.flag_reposition()
             state = self.humanoid_state()  # against the new flag
             self.potential = self.calc_potential()  # so that the move pays no jump

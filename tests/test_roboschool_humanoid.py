@@ -1,0 +1,370 @@
+"""roboschool_humanoid.py: each rule of Roboschool's three humanoid tasks, checked against a hand computation from the
+simulator's own state (joint angles, body positions, contacts), not against the module's helpers."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+
+gym = pytest.importorskip("gymnasium")
+sys.path.insert(0, str(ROOT))
+import roboschool_humanoid as rh  # noqa: E402
+
+TASKS = ["HumanoidForward", "HumanoidFlagrun", "HumanoidFlagrunHarder"]
+DT = 0.0165
+BODIES = "torso lwaist pelvis right_thigh right_shin right_foot left_thigh left_shin left_foot".split()
+BODIES += "right_upper_arm right_lower_arm left_upper_arm left_lower_arm".split()
+JOINTS = "abdomen_z abdomen_y abdomen_x right_hip_x right_hip_z right_hip_y right_knee left_hip_x left_hip_z".split()
+JOINTS += "left_hip_y left_knee right_shoulder1 right_shoulder2 right_elbow left_shoulder1 left_shoulder2".split()
+JOINTS += ["left_elbow"]
+
+
+def make(task, seed=0):
+    env = gym.make(f"roboschool_humanoid:{task}-v0").unwrapped
+    env.reset(seed=seed)
+    return env
+
+
+def body_xy(env):
+    """The mean x, y of the 13 bodies, by name."""
+    return np.mean([env.data.body(name).xpos[:2] for name in BODIES], axis=0)
+
+
+def joint_angles(env):
+    return np.array([env.data.joint(name).qpos[0] for name in JOINTS]), [env.model.joint(n).range for n in JOINTS]
+
+
+def yaw_quaternion(yaw):
+    return [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
+
+
+def stand(env, qpos):
+    """Put the body back where `qpos` has it, at rest, keeping the cube's state (the rules see a standing body)."""
+    data = env.data
+    n = 7 + len(JOINTS)
+    data.qpos[:n] = qpos[:n]
+    data.qvel[: n - 1] = 0.0
+    env.set_state(data.qpos.copy(), data.qvel.copy())
+
+
+def test_the_state_term_by_term():
+    env = make("HumanoidForward")
+    qpos = env.data.qpos.copy()
+    qvel = np.zeros(env.model.nv)
+    yaw = 1.0
+    qpos[:3] = [2.0, -1.0, 1.3]
+    qpos[3:7] = yaw_quaternion(yaw)
+    qvel[:3] = [1.5, 0.5, -0.2]
+    angles = np.linspace(-0.5, 0.3, 17)
+    qpos[7:24] = angles
+    qvel[6:23] = np.linspace(-3, 3, 17)
+    env.set_state(qpos, qvel)
+    env.feet_contact[:] = [1.0, 0.0]
+    state = env.calc_state()
+    x, y = body_xy(env)
+    heading_to_target = np.arctan2(0.0 - y, 1000.0 - x)
+    # velocity in the heading's frame: forward is (cos yaw, sin yaw), left is (-sin yaw, cos yaw)
+    forward = 1.5 * np.cos(yaw) + 0.5 * np.sin(yaw)
+    left = -1.5 * np.sin(yaw) + 0.5 * np.cos(yaw)
+    low, high = np.array([env.model.joint(n).range for n in JOINTS]).T
+    scaled = 2 * (angles - (low + high) / 2) / (high - low)
+    expected = [1.3 - 0.8, np.sin(heading_to_target - yaw), np.cos(heading_to_target - yaw)]
+    expected += [0.3 * forward, 0.3 * left, 0.3 * -0.2, 0.0, 0.0]
+    expected += list(np.stack([scaled, 0.1 * np.linspace(-3, 3, 17)], 1).ravel()) + [1.0, 0.0]
+    assert state.shape == (44,) and state.dtype == np.float32
+    np.testing.assert_allclose(state, np.clip(expected, -5, 5), atol=1e-5)
+
+
+def test_roll_and_pitch_and_the_clip_at_5():
+    env = make("HumanoidForward")
+    qpos = env.data.qpos.copy()
+    qvel = np.zeros(env.model.nv)
+    pitch = 0.3
+    qpos[3:7] = [np.cos(pitch / 2), 0.0, np.sin(pitch / 2), 0.0]  # about y only
+    qvel[6] = 80.0  # abdomen_z at 80 rad/s: 8, clipped to 5
+    env.set_state(qpos, qvel)
+    state = env.calc_state()
+    np.testing.assert_allclose(state[6:8], [0.0, pitch], atol=1e-6)
+    assert state[9] == 5.0
+    roll = -0.4
+    qpos[3:7] = [np.cos(roll / 2), np.sin(roll / 2), 0.0, 0.0]  # about x only
+    env.set_state(qpos, qvel)
+    np.testing.assert_allclose(env.calc_state()[6:8], [roll, 0.0], atol=1e-6)
+
+
+def restart_potential(env):
+    """The potential of the state as it is now, as a step would have left it."""
+    env.humanoid_state()
+    env.potential = env.calc_potential()
+
+
+def step_from(env, qpos, qvel, action):
+    env.set_state(qpos, qvel)
+    restart_potential(env)
+    return env.step(action)
+
+
+def test_each_reward_term_by_hand():
+    env = make("HumanoidForward")
+    rng = np.random.default_rng(0)
+    action = rng.uniform(-1, 1, 17)
+    qpos = env.data.qpos.copy()
+    low, high = np.array([env.model.joint(n).range for n in JOINTS]).T
+    qpos[7 + 6] = high[6]  # right_knee at its limit
+    qpos[7 + 11] = low[11] - 0.05  # right_shoulder1 past its limit
+    env.set_state(qpos, np.zeros(env.model.nv))
+    before = body_xy(env)
+    restart_potential(env)
+    _, reward, terminated, _, info = env.step(action)
+    after = body_xy(env)
+    speeds = 0.1 * np.array([env.data.joint(n).qvel[0] for n in JOINTS])
+    angles = np.array([env.data.joint(n).qpos[0] for n in JOINTS])
+    at_limit = np.sum(np.abs(2 * (angles - (low + high) / 2) / (high - low)) > 0.99)
+    progress = (np.linalg.norm([1000, 0] - before) - np.linalg.norm([1000, 0] - after)) / DT
+    assert info["reward_alive"] == 2.0 and not terminated
+    assert info["reward_progress"] == pytest.approx(progress, rel=1e-6)
+    electricity = -2.0 * 4.25 * np.mean(np.abs(action * speeds)) - 0.1 * 4.25 * np.mean(action**2)
+    assert info["reward_electricity"] == pytest.approx(electricity, rel=1e-9)
+    assert at_limit >= 1 and info["reward_joints_at_limit"] == pytest.approx(-0.1 * at_limit)
+    assert info["reward_feet_collision"] == 0.0
+    terms = [info[f"reward_{name}"] for name in ("alive", "progress", "electricity", "joints_at_limit", "feet_collision")]
+    assert reward == pytest.approx(sum(terms))
+
+
+def test_the_motors_torque_is_041_times_power_times_the_clipped_action():
+    env = make("HumanoidForward")
+    powers = dict(rh.MOTORS)
+    env.step(np.full(17, 3.0))  # clipped to 1
+    for name in JOINTS:
+        torque = env.data.qfrc_actuator[env.model.joint(name).dofadr[0]]
+        assert torque == pytest.approx(0.41 * powers[name])
+    assert [env.model.actuator(i).name for i in range(17)] == JOINTS  # the action's order is the joints'
+
+
+def lying(qpos):
+    """qpos with the torso on its front at 0.45 m (a start of FlagrunHarder)."""
+    qpos = qpos.copy()
+    qpos[2] = 0.45
+    qpos[3:7] = [np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0]
+    return qpos
+
+
+def test_alive_ends_below_078():
+    env = make("HumanoidForward")
+    qpos = lying(env.data.qpos)
+    _, _, terminated, _, info = step_from(env, qpos, np.zeros(env.model.nv), np.zeros(17))
+    assert env.data.qpos[2] < 0.78 and info["reward_alive"] == -1.0 and terminated
+
+
+def test_a_foot_on_the_cube_costs_1_and_the_floor_contact_reaches_the_next_state():
+    env = make("HumanoidFlagrunHarder")
+    for seed in range(20):  # an upright start
+        env.reset(seed=seed)
+        if env.data.qpos[2] > 1.0:
+            break
+    qpos = env.data.qpos.copy()
+    foot = env.data.geom("right_foot").xpos.copy()
+    qpos[env.cube_qpos : env.cube_qpos + 3] = foot + [0.0, 0.0, 0.1]  # the cube rests on the right foot
+    _, _, _, _, info = step_from(env, qpos, np.zeros(env.model.nv), np.zeros(17))
+    names = [(env.model.geom(a).name, env.model.geom(b).name) for a, b in env.data.contact.geom]
+    touched = {foot: {b if a == foot else a for a, b in names if foot in (a, b)} for foot in ("right_foot", "left_foot")}
+    assert "" in touched["right_foot"]  # the cube's geom has no name
+    not_floor = sum(bool(others - {"floor"}) for others in touched.values())
+    assert info["reward_feet_collision"] == -1.0 * not_floor
+    next_state, *_ = env.step(np.zeros(17))
+    on_floor = [float("floor" in touched[foot]) for foot in ("right_foot", "left_foot")]
+    np.testing.assert_array_equal(next_state[-2:], on_floor)  # read by the next step's state, as Roboschool does
+
+
+def far_flag(env):
+    """Put the flag 10 m from the body, so that it moves only on time-out."""
+    env.target = body_xy(env) + [10.0, 0.0]
+    env.data.mocap_pos[0, :2] = env.target
+    restart_potential(env)
+
+
+def test_the_flag_moves_on_reach_with_no_reward_jump():
+    env = make("HumanoidFlagrun", seed=3)
+    env.target = body_xy(env) + [0.5, 0.0]  # within 1 m
+    old = env.target.copy()
+    _, _, _, _, info = env.step(np.zeros(17))
+    assert info["flags_reached"] == 1 and info["flag_reached"]
+    assert not np.allclose(env.target, old) and env.flag_timeout == 200
+    assert info["reward_progress"] == 0.0  # the potential is the new flag's on both sides of the move
+    np.testing.assert_array_equal(env.data.mocap_pos[0, :2], env.target)  # the marker that films moved too
+    assert abs(env.target[0]) <= 105 * 0.25 * 0.5 and abs(env.target[1]) <= 50 * 0.25 * 0.5
+
+
+def test_the_flag_moves_after_200_steps_without_being_reached():
+    env = make("HumanoidFlagrun", seed=4)
+    qpos = env.data.qpos.copy()
+    far_flag(env)
+    moves = []
+    for step in range(1, 420):
+        stand(env, qpos)
+        restart_potential(env)
+        old = env.target.copy()
+        _, _, _, _, info = env.step(np.zeros(17))
+        if not np.allclose(old, env.target):
+            moves.append((step, info["reward_progress"]))
+            far_flag(env)
+    # reset counts as the first flag's first step (Roboschool counts down in every state it makes): 199, then 200
+    assert [step for step, _ in moves] == [199, 399] and all(progress == 0.0 for _, progress in moves)
+    assert env.flags_reached == 0
+
+
+def test_a_random_heading_at_the_start_of_flagrun_and_not_of_forward():
+    yaws = [rh.roll_pitch_yaw(make("HumanoidFlagrun", seed).data.qpos[3:7])[2] for seed in range(200)]
+    assert min(yaws) > -3.14 and max(yaws) < 3.14
+    counts, _ = np.histogram(yaws, bins=4, range=(-3.14, 3.14))
+    assert counts.min() > 30  # about 50 in each quarter of the circle
+    assert rh.roll_pitch_yaw(make("HumanoidForward", 5).data.qpos[3:7])[2] == 0.0
+
+
+def test_half_the_harder_starts_lie_on_the_front_or_the_back():
+    poses = []
+    for seed in range(400):
+        env = make("HumanoidFlagrunHarder", seed)
+        forward_z = env.data.body("torso").xmat.reshape(3, 3)[2, 0]  # the height of the torso's forward axis
+        poses.append((round(float(env.data.qpos[2]), 2), round(float(forward_z), 2)))
+    front = poses.count((0.45, -1.0))  # face down
+    back = poses.count((0.25, 1.0))  # face up
+    upright = poses.count((1.4, 0.0))
+    assert front + back + upright == 400
+    assert 160 < upright < 240 and 70 < front < 130 and 70 < back < 130  # 200, 100 and 100, within 4 std
+    assert all(make("HumanoidFlagrun", seed).data.qpos[2] == 1.4 for seed in range(50))
+
+
+def test_the_cube_flies_every_30_steps_after_step_100_only_while_standing():
+    env = make("HumanoidFlagrunHarder")
+    for seed in range(20):
+        env.reset(seed=seed)
+        if env.data.qpos[2] > 1.0:
+            break
+    qpos = env.data.qpos.copy()
+    throws = []
+    for step in range(1, 200):
+        stand(env, qpos)
+        _, _, _, _, info = env.step(np.zeros(17))
+        if info["cubes_thrown"] > len(throws):
+            cube = env.data.qpos[env.cube_qpos : env.cube_qpos + 3]
+            speed = np.linalg.norm(env.data.qvel[env.cube_qvel : env.cube_qvel + 3])
+            throws.append((step, np.linalg.norm(cube[:2] - env.body_xyz[:2]), cube[2] - env.body_xyz[2], speed))
+    assert [t[0] for t in throws] == [121, 151, 181]  # Roboschool's frame counter reads 120, 150, 180 then
+    for _, distance, height, speed in throws:
+        assert distance == pytest.approx(4.0, abs=0.05) and height == pytest.approx(1.0, abs=0.05)
+        assert 20 - 1.8 < speed < 30 + 1.8  # 20-30 m/s toward the target, plus noise of +-1 on each axis
+    # the same steps with the body down from step 100 on: no cube, until it has stood as long as it lay
+    env.reset(seed=seed)
+    down = lying(qpos)
+    for step in range(1, 300):
+        stand(env, down if 100 <= step < 130 else qpos)
+        _, _, _, _, info = env.step(np.zeros(17))
+        # down for 30 steps (100-129), up again for 30 (130-159): the next throw at 181, then every 30 steps
+        assert info["cubes_thrown"] == sum(step >= throw for throw in (181, 211, 241, 271))
+
+
+def test_170_steps_on_the_ground_end_the_episode():
+    env = make("HumanoidFlagrunHarder")
+    qpos = lying(env.data.qpos)
+    for step in range(1, 200):
+        stand(env, qpos)
+        _, _, terminated, _, info = env.step(np.zeros(17))
+        if terminated:
+            break
+        assert info["reward_alive"] == pytest.approx(1 + np.clip(env.body_xyz[2], 0, 0.8) / 0.8)  # the leak
+    assert step == 170 and info["reward_alive"] == -1.0
+
+
+def crawl(task, shift):
+    """Lying on the front, move the body `shift` m along x, toward the flag, in one step: the progress term, and the
+    potential's leak 1 + clip(z, 0, 0.8) / 0.8 before and after."""
+    env = make(task, seed=2)
+    qpos = lying(env.data.qpos)
+    stand(env, qpos)
+    far_flag(env)
+    leak_before = 1 + np.clip(env.data.qpos[2], 0, 0.8) / 0.8
+    env.ignored_before = getattr(env, "crawl_ignored_potential", 0.0)
+    qpos[0] += shift
+    stand(env, qpos)
+    info = env.step(np.zeros(17))[4]
+    return env, info, leak_before, 1 + np.clip(env.data.qpos[2], 0, 0.8) / 0.8
+
+
+def test_crawling_is_not_paid_and_getting_up_pays_100_times_the_leak():
+    _, info, _, _ = crawl("HumanoidFlagrun", 0.5)
+    assert info["reward_progress"] == pytest.approx(0.5 / DT, rel=0.1)  # Flagrun pays the crawl
+    env, info, leak_before, leak_after = crawl("HumanoidFlagrunHarder", 0.5)
+    assert info["reward_progress"] == pytest.approx(100 * (leak_after - leak_before), abs=1e-6)
+    crawled = env.crawl_ignored_potential - env.ignored_before
+    assert crawled == pytest.approx(0.5 / DT, rel=0.1)  # what the crawl would have paid
+    # standing up pays the leak's rise to 2, x 100, and not the crawl's 0.5 m: that stays ignored
+    qpos = env.data.qpos.copy()
+    qpos[2] = 1.4
+    qpos[3:7] = [1.0, 0.0, 0.0, 0.0]
+    old = env.potential
+    ignored = env.crawl_ignored_potential
+    stand(env, qpos)
+    _, _, _, _, info = env.step(np.zeros(17))
+    standing = -np.linalg.norm(env.target - body_xy(env)) / DT - ignored + 100 * 2.0
+    assert env.data.qpos[2] > 0.8 and info["reward_progress"] == pytest.approx(standing - old, abs=1e-6)
+
+
+def test_the_harder_electricity_costs_a_quarter():
+    costs = {}
+    for task in ("HumanoidFlagrun", "HumanoidFlagrunHarder"):
+        env = make(task)
+        qpos = env.data.qpos.copy()
+        qpos[2] = 1.4
+        qpos[3:7] = [1, 0, 0, 0]
+        _, _, _, _, info = step_from(env, qpos, np.zeros(env.model.nv), np.full(17, 0.5))
+        speeds = 0.1 * np.array([env.data.joint(n).qvel[0] for n in JOINTS])
+        costs[task] = (info["reward_electricity"] + 0.1 * 4.25 * 0.25) / np.mean(np.abs(0.5 * speeds))
+    assert costs["HumanoidFlagrun"] == pytest.approx(-8.5) and costs["HumanoidFlagrunHarder"] == pytest.approx(-8.5 / 4)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_check_env_and_the_same_episode_from_the_same_seed(task):
+    from gymnasium.utils.env_checker import check_env
+
+    check_env(gym.make(f"roboschool_humanoid:{task}-v0").unwrapped, skip_render_check=True)
+    episodes = []
+    for _ in range(2):
+        env = gym.make(f"roboschool_humanoid:{task}-v0")
+        obs, _ = env.reset(seed=7)
+        rng = np.random.default_rng(7)
+        trace = [obs]
+        for _ in range(150):
+            obs, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 17).astype(np.float32))
+            trace += [obs, [reward]]
+            if terminated:
+                obs, _ = env.reset()
+        episodes.append(np.concatenate(trace))
+    np.testing.assert_array_equal(episodes[0], episodes[1])
+
+
+def test_the_film_shows_the_flag(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    env = gym.make("roboschool_humanoid:HumanoidFlagrun-v0", render_mode="rgb_array", width=240, height=160).unwrapped
+    env.reset(seed=0)
+    env.target = body_xy(env) + [3.0, 0.0]
+    env.data.mocap_pos[0, :2] = env.target
+    frame = env.render()
+    red = (frame[..., 0] > 150) & (frame[..., 1] < 80) & (frame[..., 2] < 80)
+    env.data.mocap_pos[0, :2] = [1e3, 0]  # the flag out of sight: no such red
+    frame = env.render()
+    hidden = (frame[..., 0] > 150) & (frame[..., 1] < 80) & (frame[..., 2] < 80)
+    env.close()
+    assert red.sum() > 20 and hidden.sum() == 0
+
+
+@pytest.mark.parametrize("env_id", ["roboschool_humanoid:HumanoidRun-v0", "no_such_module:HumanoidFlagrun-v0"])
+def test_an_unknown_id_or_module_ends_in_one_line(env_id):
+    proc = subprocess.run(
+        [sys.executable, "ppo_continuous.py", "--env-id", env_id], cwd=ROOT, capture_output=True, text=True
+    )
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert len(proc.stderr.strip().splitlines()) == 1 and "unknown env id" in proc.stderr
