@@ -236,6 +236,7 @@ class HumanoidForward(MujocoEnv):
         mujoco.mj_step(self.model, self.data, nstep=FRAME_SKIP)
         mujoco.mj_kinematics(self.model, self.data)  # the bodies' positions after the last physics step
         flags_reached = self.flags_reached
+        self.flag_moved = False
         state = self.calc_state()
         alive = self.alive_bonus()
         potential_old = self.potential
@@ -252,6 +253,7 @@ class HumanoidForward(MujocoEnv):
         terminated = alive < 0 or not np.isfinite(state).all()
         info = {f"reward_{name}": float(value) for name, value in terms.items()}
         info |= {"flags_reached": self.flags_reached, "flag_reached": self.flags_reached > flags_reached}
+        info |= {"flag_moved": self.flag_moved}
         info |= {"distance_to_target": self.walk_target_dist, "torso_z": self.body_xyz[2]}
         info |= {"cubes_thrown": self.cubes_thrown}
         if self.render_mode == "human":
@@ -278,6 +280,7 @@ class HumanoidFlagrun(HumanoidForward):
         if self.walk_target_dist < 1 or self.flag_timeout <= 0:
             self.flags_reached += bool(self.walk_target_dist < 1)
             self.flag_reposition()
+            self.flag_moved = True
             state = self.humanoid_state()  # against the new flag
             self.potential = self.calc_potential()  # so that the move pays no jump
         return state

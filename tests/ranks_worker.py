@@ -6,8 +6,9 @@
 `update` builds one fixed rollout batch (the same on every rank, from a fixed seed), gives rank r its half (rows
 r B/2, ..., r B/2 + B/2 - 1), and runs K epochs of the script's own minibatch_loss and gradient_step on it, each rank
 taking its half of every minibatch; it also feeds each rank's half of a stream of observations to the script's
-RunningMeanStd and merges them. `main` runs the script's main() and keeps the agent its train() returns. Both write
-each rank's weights (and statistics) to OUT.rank<r>.pt.
+RunningMeanStd and merges them. `main` runs the script's main() and keeps the agent its train() returns, the KL that
+each call of the script's KL rule (Table 4's step size, §4's beta) read, and the seeds its envs were reset with. Both
+write each rank's weights (and statistics) to OUT.rank<r>.pt.
 """
 
 import os
@@ -94,7 +95,26 @@ def main():
             rms.merge_ranks()
             result["rms"] = (rms.mean, rms.var, rms.count)
     else:
-        agents, episodes = [], []
+        import gymnasium as gym
+
+        agents, episodes, kls, seeds = [], [], [], []
+        for rule in ("kl_adaptive_lr", "adapt_beta"):  # (value, kl, target): record the KL, then apply the rule
+            if hasattr(module, rule):
+                apply = getattr(module, rule)
+                setattr(
+                    module, rule, lambda value, kl, target, apply=apply: (kls.append(kl), apply(value, kl, target))[1]
+                )
+        vector_envs = [gym.vector.SyncVectorEnv]
+        if script == "ppo_atari.py":
+            import ale_py
+
+            vector_envs.append(ale_py.AtariVectorEnv)
+        for vector_env in vector_envs:  # record the seeds of each reset that has them, as a list of ints
+            reset = vector_env.reset
+            vector_env.reset = lambda self, reset=reset, **kw: (
+                seeds.append([int(seed) for seed in kw["seed"]]) if kw.get("seed") is not None else None,
+                reset(self, **kw),
+            )[1]
         make_agent = module.Agent.__init__
         module.Agent.__init__ = lambda self, *a, **k: (make_agent(self, *a, **k), agents.append(self))[0]
         count_episodes = module.Log.episodes
@@ -109,7 +129,7 @@ def main():
         except SystemExit as e:
             code = e.code
         rank = int(os.environ["RANK"])  # main() has left the process group
-        result = {"agent": agents[-1].state_dict(), "exit": code, "episodes": sum(episodes)}
+        result = {"agent": agents[-1].state_dict(), "exit": code, "episodes": sum(episodes), "kls": kls, "seeds": seeds}
         torch.save(result, f"{out}.rank{rank}.pt")
         sys.exit(code)
     torch.save(result, f"{out}.rank{rank}.pt")

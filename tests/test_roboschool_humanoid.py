@@ -6,7 +6,6 @@ import sys
 
 import numpy as np
 import pytest
-
 from conftest import ROOT
 
 gym = pytest.importorskip("gymnasium")
@@ -130,7 +129,9 @@ def test_each_reward_term_by_hand():
     assert info["reward_electricity"] == pytest.approx(electricity, rel=1e-9)
     assert at_limit >= 1 and info["reward_joints_at_limit"] == pytest.approx(-0.1 * at_limit)
     assert info["reward_feet_collision"] == 0.0
-    terms = [info[f"reward_{name}"] for name in ("alive", "progress", "electricity", "joints_at_limit", "feet_collision")]
+    terms = [
+        info[f"reward_{name}"] for name in ("alive", "progress", "electricity", "joints_at_limit", "feet_collision")
+    ]
     assert reward == pytest.approx(sum(terms))
 
 
@@ -170,7 +171,9 @@ def test_a_foot_on_the_cube_costs_1_and_the_floor_contact_reaches_the_next_state
     qpos[env.cube_qpos : env.cube_qpos + 3] = foot + [0.0, 0.0, 0.1]  # the cube rests on the right foot
     _, _, _, _, info = step_from(env, qpos, np.zeros(env.model.nv), np.zeros(17))
     names = [(env.model.geom(a).name, env.model.geom(b).name) for a, b in env.data.contact.geom]
-    touched = {foot: {b if a == foot else a for a, b in names if foot in (a, b)} for foot in ("right_foot", "left_foot")}
+    touched = {
+        foot: {b if a == foot else a for a, b in names if foot in (a, b)} for foot in ("right_foot", "left_foot")
+    }
     assert "" in touched["right_foot"]  # the cube's geom has no name
     not_floor = sum(bool(others - {"floor"}) for others in touched.values())
     assert info["reward_feet_collision"] == -1.0 * not_floor
@@ -270,13 +273,15 @@ def test_the_cube_flies_every_30_steps_after_step_100_only_while_standing():
 def test_170_steps_on_the_ground_end_the_episode():
     env = make("HumanoidFlagrunHarder")
     qpos = lying(env.data.qpos)
-    for step in range(1, 200):
+    steps = 0
+    terminated = False
+    while not terminated and steps < 200:
         stand(env, qpos)
         _, _, terminated, _, info = env.step(np.zeros(17))
-        if terminated:
-            break
-        assert info["reward_alive"] == pytest.approx(1 + np.clip(env.body_xyz[2], 0, 0.8) / 0.8)  # the leak
-    assert step == 170 and info["reward_alive"] == -1.0
+        steps += 1
+        if not terminated:
+            assert info["reward_alive"] == pytest.approx(1 + np.clip(env.body_xyz[2], 0, 0.8) / 0.8)  # the leak
+    assert steps == 170 and info["reward_alive"] == -1.0
 
 
 def crawl(task, shift):

@@ -22,6 +22,13 @@ TWO_RANKS = {
     "ppo_kl_penalty.py": ["--num-envs", "2"],
     "ppo_atari.py": [],
 }
+# The rules that read the batch's KL after each update, on: Table 4's step size (ppo_kl_penalty.py's beta is on by
+# default; ppo_atari.py has none).
+KL_RULES = {
+    "ppo_continuous.py": ["--lr-target-kl", "0.01", "--no-anneal-lr"],
+    "ppo_kl_penalty.py": [],
+    "ppo_atari.py": [],
+}
 
 
 def torchrun(*args, nproc=2, standalone=True):
@@ -54,7 +61,8 @@ def wait_for(path, seconds=120):
 
 
 def tiny_flags(script, tmp_path, *extra, budget="tiny"):
-    return ["--env-id", TINY[script]["env_id"], *TINY[script][budget], *TWO_RANKS[script], *ONE_THREAD, *extra]
+    two_ranks = ["--num-envs", "2"] if budget == "interruptible" else TWO_RANKS[script]  # its interruptible run: 1 env
+    return ["--env-id", TINY[script]["env_id"], *TINY[script][budget], *two_ranks, *ONE_THREAD, *extra]
 
 
 def worker_main(script, tmp_path, flags, nproc=2, timeout=240):
@@ -116,10 +124,19 @@ def test_one_update_on_two_ranks_is_one_process_update_on_the_whole_batch(script
 
 @pytest.mark.parametrize("script", GYM_SCRIPTS)
 def test_a_two_rank_run_ends_with_the_same_weights_on_both_ranks_and_one_record(script, tmp_path):
-    proc, ranks = worker_main(script, tmp_path, tiny_flags(script, tmp_path, "--run-dir", str(tmp_path / "run")))
+    flags = tiny_flags(script, tmp_path, "--run-dir", str(tmp_path / "run"), *KL_RULES[script])
+    proc, ranks = worker_main(script, tmp_path, flags)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert [r["exit"] for r in ranks] == [0, 0]
     assert_same_state(ranks[0]["agent"], ranks[1]["agent"])
+    # Issue 61: the KL that the step size's or beta's rule reads is the mean over all ranks, the same on each: a rank's
+    # own KL would give each rank its own step size or beta, and their weights would drift apart over the run.
+    if script != "ppo_atari.py":
+        assert len(ranks[0]["kls"]) >= 1 and ranks[0]["kls"] == ranks[1]["kls"], [r["kls"] for r in ranks]
+    # Issue 61: env i of the run is seeded as env i of one process, (seed + step) N + i, whichever rank steps it: ranks
+    # that seeded their envs as rank 0 does would start half of each batch from the same states.
+    n_envs = int(flags[flags.index("--num-envs") + 1]) if "--num-envs" in flags else 1
+    assert ranks[0]["seeds"][0] + ranks[1]["seeds"][0] == [1 * n_envs + i for i in range(n_envs)]
     # One record: rank 0's TensorBoard file and checkpoint, one set of progress lines, and every rank's episodes.
     run_dir = tmp_path / "run"
     assert len(list(run_dir.glob("events.out.tfevents.*"))) == 1
@@ -155,6 +172,39 @@ def test_ctrl_c_stops_every_rank_at_one_iteration_with_one_checkpoint(tmp_path):
     checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert_same_state(checkpoint["agent"], ranks[0]["agent"])
     assert checkpoint["global_step"] < 2048
+    assert stdout.count("continue with --resume") == 1, stdout
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_sigterm_to_one_rank_alone_stops_every_rank_at_one_iteration_with_one_checkpoint(script, tmp_path):
+    """Issue 61: a scheduler that preempts one machine signals its ranks only. The others stop with it, at the same
+    iteration, and rank 0 saves: a rank that stopped on its own flag would leave the others to fail (rank 0 saving
+    nothing since its last checkpoint)."""
+    run_dir = tmp_path / "run"
+    flags = tiny_flags(script, tmp_path, "--run-dir", str(run_dir), "--save-every", "2", budget="interruptible")
+    out = tmp_path / "result"
+    proc = start(
+        [*torchrun(), str(ROOT / "tests" / "ranks_worker.py"), "main", script, str(out), "--", *flags], tmp_path
+    )
+    try:
+        wait_for(run_dir / "checkpoint.pt")
+        saved = (run_dir / "checkpoint.pt").stat().st_mtime_ns
+        children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        rank1 = [pid for pid in children if "RANK=1" in open(f"/proc/{pid}/environ", "rb").read().decode().split("\0")]
+        assert len(rank1) == 1, children
+        os.kill(int(rank1[0]), signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    ranks = [
+        torch.load(f"{out}.rank{r}.pt", weights_only=False) for r in range(2) if os.path.exists(f"{out}.rank{r}.pt")
+    ]
+    assert [r["exit"] for r in ranks] == [130, 130], stderr[-3000:]
+    assert_same_state(ranks[0]["agent"], ranks[1]["agent"])
+    checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert_same_state(checkpoint["agent"], ranks[0]["agent"])  # saved at the stop
+    assert (run_dir / "checkpoint.pt").stat().st_mtime_ns > saved and checkpoint["global_step"] < 2048
     assert stdout.count("continue with --resume") == 1, stdout
 
 

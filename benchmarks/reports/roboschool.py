@@ -1,0 +1,101 @@
+"""The roboschool family: the paper's Figure 4, its three humanoid tasks with Roboschool's rules on MuJoCo
+(roboschool_humanoid.py), beside the figure's rough end points, and what the trained policies do in units a reader
+knows (benchmarks/roboschool_measures.py)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from reports import scores
+from reports.base import env_base, fmt, ordered_variants, suite_name
+from reports.stats import group, mean_return, mean_std
+from suites import COLUMNS
+
+ORDER = 2  # beside the humanoid suite
+RULE = (
+    "A run's score is the mean return of its last 100 episodes; a cell is the mean ± sample std over seeds, with the"
+    " number of seeds in brackets. Rewards are Roboschool's (per step: +2 alive, progress toward the target in m/s,"
+    " minus the motors' costs), not gymnasium's: compare them with Figure 4, not with Humanoid-v5."
+)
+
+
+def tables(folder, runs, reference, results, level="##"):
+    """The scores beside Figure 4's, then the measures of the trained policies where they have been made."""
+    by_env = group(runs)
+    lines = [
+        "| env | setting | steps | last 100 (n) | all training (n) | wall time per run | paper, Fig. 4 (approx.) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for env in sorted(by_env):
+        for v in ordered_variants(suite_name(folder), runs):
+            if v not in by_env[env]:
+                continue
+            last = [r.score for r in by_env[env][v]]
+            whole = [mean_return(r.rows) for r in by_env[env][v]]
+            steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in by_env[env][v]}))
+            wall = ", ".join(f"{float(r.meta['wall_time_s']) / 60:.0f} min" for r in by_env[env][v])
+            ref = [reference.get((column, env_base(env), v)) for column, _, _ in COLUMNS["roboschool"]]
+            paper = "; ".join(fmt(r[0]) for r in ref if r) or "–"
+            n = len(last)
+            lines.append(
+                f"| {env} | {v} | {steps} | {fmt(*mean_std(last))} ({n}) | {fmt(*mean_std(whole))} ({n}) | {wall}"
+                f" | {paper} |"
+            )
+    return lines + measures_table(folder, level)
+
+
+def read_measures(folder):
+    """{run name: [row, ...]} from <folder>/measures/*.csv (benchmarks/roboschool_measures.py)."""
+    out = {}
+    for path in sorted((Path(folder) / "measures").glob("*.csv")):
+        with open(path) as f:
+            out[path.stem] = list(csv.DictReader(f))
+    return out
+
+
+def measures_table(folder, level):
+    measures = read_measures(folder)
+    if not measures:
+        return []
+    lines = [
+        "",
+        f"{level} What the trained policies do",
+        "",
+        "Each run's last checkpoint, its deterministic policy (the Gaussian's mean), "
+        f"{len(next(iter(measures.values())))} episodes (env seeds 1, 2, ...), by `benchmarks/roboschool_measures.py`."
+        " Down means the torso below 0.8 m (FlagrunHarder's rule); a knock-down is a fall within 30 steps of a cube's"
+        " throw; got up counts the times it rose from the ground (from a fall or a start lying down), and the steps it"
+        " took on average. Means over episodes.",
+        "",
+        "| run | steps an episode | flags reached an episode | speed toward the flag (m/s) | falls (knock-downs)"
+        " an episode | got up (times down) | steps to get up |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, rows in measures.items():
+
+        def mean(key, rows=rows):
+            values = [float(r[key]) for r in rows if r[key] != ""]
+            return sum(values) / len(values) if values else None
+
+        downs = sum(int(r["falls"]) + int(r["started_down"]) for r in rows)
+        getups = sum(int(r["getups"]) for r in rows)
+        steps_up = mean("getup_steps")
+        lines.append(
+            f"| {name.replace('__', ', ')} | {mean('length'):.0f} | {mean('flags'):.2f} | {mean('speed_to_flag'):.2f}"
+            f" | {mean('falls'):.2f} ({mean('knockdowns'):.2f}) | {getups} ({downs})"
+            f" | {f'{steps_up:.0f}' if steps_up is not None else '–'} |"
+        )
+    return lines
+
+
+def write_report(folder, runs, reference, results):
+    """Write <folder>/report.md and its curves; returns the markdown."""
+    return scores.write_report(folder, runs, reference, results, tables, RULE, COLUMNS["roboschool"])
+
+
+def readme_lines(folder, results, reference, full):
+    """The suite's lines in a README's Results block (scores.readme_lines)."""
+    from results import load_runs
+
+    return scores.readme_lines(folder, load_runs(folder), results, reference, full, tables)

@@ -1,0 +1,121 @@
+"""What the roboschool suite's trained policies do, in units a reader knows: flags reached per episode, speed toward the
+flag, and, for FlagrunHarder, falls, the cube's knock-downs, and the share of times and the steps it takes to get up.
+
+    python benchmarks/roboschool_measures.py                            # each run of the suite at its 50M budget
+    python benchmarks/roboschool_measures.py --total-timesteps 10027008 # the 10M pilots and seeds
+    python benchmarks/roboschool_measures.py --checkpoint runs/x/checkpoint.pt   # any run's, printed only
+
+Each run's checkpoint plays --episodes episodes (seeds 1, 2, ...) with its deterministic policy (the Gaussian's mean,
+as --eval-checkpoint plays it), and one row an episode goes to results/<suite folder>/measures/<run>.csv, which the
+suite's report reads. The body is down while its torso is below 0.8 m, FlagrunHarder's rule for "on the ground"; a fall
+is a step from up to down, a knock-down a fall within 30 steps of a cube's throw, and a get-up a step from down to up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import load_script  # noqa: E402
+from run import make_grid  # noqa: E402
+
+DOWN = 0.8  # m: FlagrunHarder's "on the ground"
+DT = 0.0165  # s a step
+FIELDS = "seed return length flags speed_to_flag started_down falls knockdowns cubes getups getup_steps".split()
+
+
+def play(checkpoint_path, episodes):
+    """One dict of FIELDS an episode of the checkpoint's deterministic policy, on its own env, seeds 1..episodes."""
+    import gymnasium as gym
+    import torch
+
+    script = load_script("ppo_continuous.py")
+    checkpoint, train_args = script.load_checkpoint(str(checkpoint_path), script.Args())
+    env = gym.make(train_args.env_id)
+    agent = script.Agent(env.observation_space.shape[0], env.action_space.shape[0], norm_obs=train_args.norm_obs)
+    agent.load_state_dict(checkpoint["agent"])
+    rows = []
+    for seed in range(1, episodes + 1):
+        obs, _ = env.reset(seed=seed)
+        row = dict.fromkeys(FIELDS, 0)
+        row["seed"] = seed
+        row["started_down"] = int(env.unwrapped.data.qpos[2] < DOWN)
+        down_since = 0 if row["started_down"] else None
+        last_throw = -1000
+        speeds = []
+        distance = None
+        getup_steps = []
+        cubes = 0
+        for step in range(1, 10**6):
+            with torch.inference_mode():
+                action = agent.actor_mean(torch.as_tensor(agent.normalize_obs(obs[None])))[0].numpy()
+            obs, reward, terminated, truncated, info = env.step(np.clip(action, -1.0, 1.0))
+            row["return"] += float(reward)
+            if distance is not None and not info["flag_moved"]:
+                speeds.append((distance - info["distance_to_target"]) / DT)
+            distance = info["distance_to_target"]
+            if info["cubes_thrown"] > cubes:
+                cubes = info["cubes_thrown"]
+                last_throw = step
+            down = info["torso_z"] < DOWN
+            if down and down_since is None:
+                down_since = step
+                row["falls"] += 1
+                row["knockdowns"] += step - last_throw <= 30
+            elif not down and down_since is not None:
+                getup_steps.append(step - down_since)
+                down_since = None
+            if terminated or truncated:
+                break
+        row.update(length=step, flags=info["flags_reached"], cubes=cubes, getups=len(getup_steps))
+        row["speed_to_flag"] = float(np.mean(speeds)) if speeds else 0.0
+        row["getup_steps"] = float(np.mean(getup_steps)) if getup_steps else ""
+        rows.append(row)
+    env.close()
+    return rows
+
+
+def write(path, rows):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def summary(rows):
+    """One line: the means over episodes of what a reader can picture."""
+    mean = {key: np.mean([float(r[key]) for r in rows if r[key] != ""] or [np.nan]) for key in FIELDS[1:]}
+    downs = sum(r["falls"] + r["started_down"] for r in rows)
+    share = f"{sum(r['getups'] for r in rows)}/{downs}" if downs else "-"
+    return (
+        f"return {mean['return']:.0f}, {mean['length']:.0f} steps, {mean['flags']:.1f} flags, "
+        f"{mean['speed_to_flag']:.2f} m/s toward the flag, {mean['falls']:.1f} falls "
+        f"({mean['knockdowns']:.1f} knock-downs), got up {share} times, in {mean['getup_steps']:.0f} steps"
+    )
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--total-timesteps", type=int, help="the suite's budget whose runs to measure (default: 50M)")
+    parser.add_argument("--checkpoint", type=Path, help="measure this checkpoint only, and print it")
+    parser.add_argument("--episodes", type=int, default=30)
+    args = parser.parse_args()
+    if args.checkpoint:
+        print(summary(play(args.checkpoint, args.episodes)))
+        return
+    for job in make_grid("roboschool", total_timesteps=args.total_timesteps):
+        if job.checkpoint.exists() and job.csv.exists():
+            rows = play(job.checkpoint, args.episodes)
+            write(job.results_dir / "measures" / f"{job.name}.csv", rows)
+            print(f"{job.name}: {summary(rows)}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
