@@ -59,6 +59,9 @@ class Args:
     rm_epochs: int = 4  # epochs over the training pairs
     rm_batch_size: int = 64  # pairs per step
     rm_learning_rate: float = 1e-3  # Adam step size
+    rm_ensemble: int = 1  # K reward models, on the same pairs, each in the order of its own seed (Coste et al. 2023)
+    rm_ensemble_agg: Literal["mean", "min", "uwo"] = "mean"  # how stage 3 scores with K: uwo is mean - lambda variance
+    uwo_coef: float = 0.1  # lambda of uwo, the weight of the members' variance (Coste et al.'s PPO setting)
     # Stage 3: PPO against the reward model
     total_episodes: int = 12_800  # responses sampled in all, rounded down to whole batches
     batch_size: int = 64  # prompts per rollout
@@ -80,6 +83,9 @@ class Args:
     group_size: int = 8  # grpo, dr-grpo, rloo: responses sampled for each prompt, one group; divides --batch-size
     dpo: bool = False  # stage 3 is DPO on the reward model's own training pairs, with beta --kl-coef, in place of PPO
     ipo: bool = False  # with --dpo, IPO's loss (Azar et al. 2023): the margin's squared distance from 1 / (2 beta)
+    kto: bool = False  # stage 3 is KTO (Ethayarajh et al. 2024) on the RM's pairs taken apart, with beta --kl-coef
+    kto_weights: tuple[float, float] = (1.0, 1.0)  # KTO's lambda_D and lambda_U, of desirable and undesirable responses
+    kto_desirable_share: float = 1.0  # the share of the desirable (chosen) responses KTO keeps: its imbalanced data
     sft_checkpoint: str | None = None  # skip stage 1: take pi_SFT from this sft.pt
     reward_model_checkpoint: str | None = None  # skip stage 2: take the reward model from this reward_model.pt
     save_every: int = 25  # save the PPO checkpoint, and print samples, every this many iterations (and at the end)
@@ -167,6 +173,18 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True, mask=Non
 def preference_loss(chosen_scores, rejected_scores):
     """The Bradley-Terry loss of a reward model, -log sigmoid(r_w - r_l), averaged over pairs."""
     return -F.logsigmoid(chosen_scores - rejected_scores).mean()
+
+
+def kto_loss(desirable, undesirable, z0, weights):
+    """KTO's loss (Ethayarajh et al. 2024, eq. (8)) from the implied rewards r = beta log(pi(y|x) / pi_SFT(y|x)) of
+    responses judged alone: lambda_D (1 - sigmoid(r - z0)) for a desirable one, lambda_U (1 - sigmoid(z0 - r)) for an
+    undesirable one, averaged over both. z0 is the reference point, beta KL[pi || pi_SFT] (dpo_update estimates it).
+
+    >>> kto_loss(torch.zeros(1), torch.zeros(2), 0.0, (1.0, 2.0))  # (1 x 0.5 + 2 x 2 x 0.5) / 3
+    tensor(0.8333)
+    """
+    losses = [weights[0] * (1 - torch.sigmoid(desirable - z0)), weights[1] * (1 - torch.sigmoid(z0 - undesirable))]
+    return torch.cat(losses).mean()
 
 
 def pairwise_accuracy(scores, gold, prompts):
@@ -307,6 +325,21 @@ class TinyLM(nn.Module):
         return self(tokens)[1][torch.arange(len(tokens)), PROMPT_LENGTH + mask.sum(1).long() - 1]
 
 
+class Ensemble(nn.ModuleList):
+    """--rm-ensemble K reward models as one (Coste et al. 2023): the mean of their scores, the minimum (worst case), or
+    uwo, the mean minus lambda times their variance (uncertainty-weighted). members=True: each member's [K, B]."""
+
+    def __init__(self, members, args):
+        super().__init__(members)
+        self.args = args
+
+    def score(self, tokens, mask, members=False):
+        scores = torch.stack([reward_model.score(tokens, mask) for reward_model in self])
+        aggregates = {"mean": scores.mean(0), "min": scores.min(0).values}
+        aggregates["uwo"] = scores.mean(0) - self.args.uwo_coef * scores.var(0)
+        return scores if members else aggregates[self.args.rm_ensemble_agg]
+
+
 class Agent(nn.Module):
     """The policy pi_theta, started from pi_SFT, and its value function: by default a critic started from the RM,
     which reads responses as the RM does and cannot pull on the policy's weights; or a head on the policy (faster)."""
@@ -314,7 +347,8 @@ class Agent(nn.Module):
     def __init__(self, sft, reward_model, value_model):
         super().__init__()
         self.policy = copy.deepcopy(sft)
-        self.critic = copy.deepcopy(reward_model) if value_model == "reward-model" else None
+        first = reward_model[0] if isinstance(reward_model, Ensemble) else reward_model  # an ensemble's first member
+        self.critic = copy.deepcopy(first) if value_model == "reward-model" else None
 
     def forward(self, tokens):
         """Logits and values at every position; position t holds what predicts token t + 1."""
@@ -322,8 +356,9 @@ class Agent(nn.Module):
         return logits, values if self.critic is None else self.critic(tokens)[1]
 
 
-def new_model(args, device, state=None):
-    model = TinyLM(args.d_model, args.n_layer, args.n_head).to(device)
+def new_model(args, device, state=None, members=1):
+    model = TinyLM(args.d_model, args.n_layer, args.n_head)
+    model = (model if members == 1 else Ensemble([copy.deepcopy(model) for _ in range(members)], args)).to(device)
     if state is not None:
         model.load_state_dict(state)
     return model
@@ -401,25 +436,33 @@ def train_reward_model(args, sft, run_dir, device, stop):
     """Stage 2: a reward model, pi_SFT with its scalar head read at the EOS, fitted to pairs of pi_SFT's responses
     ranked by the gold reward. It only ever sees pi_SFT's text: what it says of any other text is a guess."""
     if args.reward_model_checkpoint:
-        return new_model(args, device, load_checkpoint(args.reward_model_checkpoint, args, "reward_model")[0]["model"])
+        state = load_checkpoint(args.reward_model_checkpoint, args, "reward_model")[0]["model"]
+        return new_model(args, device, state, args.rm_ensemble)
     tokens, mask, chosen, rejected, n_train = preference_pairs(sft, args, device)
-    order = torch.cat([torch.randperm(n_train, device=device) for _ in range(args.rm_epochs)])
-    reward_model = copy.deepcopy(sft)
-
-    def loss_fn(step):
-        mb_inds = order[(step - 1) * args.rm_batch_size : step * args.rm_batch_size]
-        r_w = reward_model.score(tokens[chosen[mb_inds]], mask[chosen[mb_inds]])
-        return preference_loss(r_w, reward_model.score(tokens[rejected[mb_inds]], mask[rejected[mb_inds]]))
-
-    steps = math.ceil(len(order) / args.rm_batch_size)
+    steps = math.ceil(n_train * args.rm_epochs / args.rm_batch_size)
     saved = f"stage 1 is saved: go on with --sft-checkpoint {args.sft_checkpoint or os.path.join(run_dir, 'sft.pt')}"
-    fit(reward_model, loss_fn, steps, args.rm_learning_rate, "2, reward model", stop, saved)
+    members = []
+    for k in range(args.rm_ensemble):
+        if k:  # member k > 0: the same pairs, in the order of a seed of its own
+            torch.manual_seed(args.seed + 1 + 1000 * k)
+        order = torch.cat([torch.randperm(n_train, device=device) for _ in range(args.rm_epochs)])
+        reward_model = copy.deepcopy(sft)
+
+        def loss_fn(step, order=order, reward_model=reward_model):
+            mb_inds = order[(step - 1) * args.rm_batch_size : step * args.rm_batch_size]
+            r_w = reward_model.score(tokens[chosen[mb_inds]], mask[chosen[mb_inds]])
+            return preference_loss(r_w, reward_model.score(tokens[rejected[mb_inds]], mask[rejected[mb_inds]]))
+
+        fit(reward_model, loss_fn, steps, args.rm_learning_rate, "2, reward model", stop, saved)
+        with torch.no_grad():  # normalize the score to mean 0 and std 1 on pi_SFT's responses, through the scalar head
+            scores = reward_model.score(tokens, mask)
+            reward_model.score_head.weight.div_(scores.std())
+            reward_model.score_head.bias.sub_(scores.mean()).div_(scores.std())
+        members.append(reward_model)
+    reward_model = members[0] if args.rm_ensemble == 1 else Ensemble(members, args)
     with torch.no_grad():
         scores = reward_model.score(tokens, mask)
-        accuracy = (scores[chosen[n_train:]] > scores[rejected[n_train:]]).float().mean().item()
-        # Normalize the score to mean 0 and std 1 on pi_SFT's responses, through the scalar head.
-        reward_model.score_head.weight.div_(scores.std())
-        reward_model.score_head.bias.sub_(scores.mean()).div_(scores.std())
+    accuracy = (scores[chosen[n_train:]] > scores[rejected[n_train:]]).float().mean().item()
     print(f"stage 2: the reward model ranks {accuracy:.1%} of {len(chosen) - n_train} held-out pairs as gold does")
     state = {"model": reward_model.state_dict(), "held_out_accuracy": accuracy}
     save_checkpoint(os.path.join(run_dir, "reward_model.pt"), "reward_model", args, **state)
@@ -442,6 +485,8 @@ def rollout(agent, reference, reward_model, args):
     gold, forms = gold_scores(tokens, mask)
     batch = {"tokens": tokens, "responses": responses, "mask": mask, "logprobs": dist.log_prob(responses)}
     batch |= {"ref_logprobs": ref_logprobs, "values": values[:, PROMPT_LENGTH - 1 : -1] * mask, "scores": scores}
+    if isinstance(reward_model, Ensemble):  # each member's score [B, K]: do they agree on what pi writes?
+        batch["rm_members"] = reward_model.score(tokens, mask, members=True).T
     return batch | forms | {"gold": gold, "has_eos": has_eos.float(), "entropy": dist.entropy()}
 
 
@@ -455,6 +500,9 @@ def response_stats(batch, pool):
     stats["entropy"] = masked_mean(batch["entropy"], mask)
     stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
     stats["rm_accuracy"], stats["rm_pairs"] = pairwise_accuracy(*pool)
+    if "rm_members" in batch:  # an ensemble's members, each's mean score, and their disagreement (their std)
+        stats |= {f"rm_member{k}": score.mean() for k, score in enumerate(batch["rm_members"].T)}
+        stats["rm_disagreement"] = batch["rm_members"].std(1).mean()
     return {f"rlhf/{name}": value.item() for name, value in stats.items()}
 
 
@@ -471,24 +519,35 @@ def sequence_logprobs(lm, tokens, mask, temperature):
 
 
 def dpo_pairs(reference, args, device):
-    """DPO's data: the reward model's training pairs, with pi_SFT's log-prob of each response, computed once."""
+    """DPO's data: the reward model's training pairs, with pi_SFT's log-prob of each response, computed once. KTO also
+    takes "kl", mismatched pairs (each pair's prompt, the previous pair's response) for its reference point, and "kept",
+    the pairs whose chosen response it keeps (--kto-desirable-share)."""
     tokens, mask, chosen, rejected, n_train = preference_pairs(reference, args, device)
-    pairs = {}
-    for side, rows in (("chosen", chosen[:n_train]), ("rejected", rejected[:n_train])):
+    pairs = {"kept": torch.arange(n_train, device=device) < args.kto_desirable_share * n_train}
+    sides = [("chosen", chosen[:n_train]), ("rejected", rejected[:n_train])]
+    for side, rows in sides + [("kl", rejected[:n_train].roll(1))] * args.kto:
         pairs |= {f"{side}_tokens": tokens[rows], f"{side}_mask": mask[rows]}
-        pairs[f"{side}_ref"] = sequence_logprobs(reference, tokens[rows], mask[rows], args.temperature).detach()
+        pairs[f"{side}_tokens"][:, :PROMPT_LENGTH] = tokens[chosen[:n_train], :PROMPT_LENGTH]  # the pair's prompt
+        logprobs = sequence_logprobs(reference, pairs[f"{side}_tokens"], mask[rows], args.temperature)
+        pairs[f"{side}_ref"] = logprobs.detach()
     return pairs
 
 
 def dpo_update(agent, optimizer, mb, args):
     """A minibatch step of DPO (Rafailov et al. 2023, eq. (7)): the reward model's own Bradley-Terry loss on its own
     pairs, with beta log(pi(y|x) / pi_SFT(y|x)), the reward that pi* of compute_rewards' objective implies, in place of
-    the RM's score. DPO removes the reward model and the rollouts, and keeps the objective: E[r] - beta KL."""
+    the RM's score. DPO removes the reward model and the rollouts, and keeps the objective: E[r] - beta KL. --kto: each
+    response judged alone against KTO's reference point z0, the mismatched pairs' mean implied reward (detached and
+    clamped at 0, as TRL's KTOTrainer estimates beta KL), the chosen ones desirable and the rejected ones not."""
     implicit = {}
-    for side in ("chosen", "rejected"):
-        logprobs = sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"], args.temperature)
+    for side in ("chosen", "rejected", *["kl"] * args.kto):
+        with torch.set_grad_enabled(side != "kl"):
+            logprobs = sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"], args.temperature)
         implicit[side] = args.kl_coef * (logprobs - mb[f"{side}_ref"])
-    if args.ipo:  # a margin with a target, where DPO's loss falls as long as the margin grows, without bound
+    if args.kto:
+        z0 = implicit["kl"].mean().clamp(min=0)
+        loss = kto_loss(implicit["chosen"][mb["kept"]], implicit["rejected"], z0, args.kto_weights)
+    elif args.ipo:  # a margin with a target, where DPO's loss falls as long as the margin grows, without bound
         loss = (((implicit["chosen"] - implicit["rejected"]) / args.kl_coef - 1 / (2 * args.kl_coef)) ** 2).mean()
     else:
         loss = preference_loss(implicit["chosen"], implicit["rejected"])
@@ -523,7 +582,7 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
     --dpo, DPO's updates on the RM's pairs, each iteration's rollout then only measuring pi."""
     reference = sft.requires_grad_(False)  # pi_SFT, frozen
     # GRPO, Dr. GRPO, RLOO and DPO train no value function
-    value_model = args.value_model if args.advantage == "gae" and not args.dpo else "policy-head"
+    value_model = args.value_model if args.advantage == "gae" and not (args.dpo or args.kto) else "policy-head"
     agent = Agent(sft, reward_model.requires_grad_(False), value_model).requires_grad_(True)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)  # core detail 3
     num_iterations = args.total_episodes // args.batch_size
@@ -533,14 +592,14 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
     pool = checkpoint["rm_pool"] if checkpoint and len(checkpoint["rm_pool"]) == 3 else torch.zeros(3, 0, device=device)
     start_iteration = checkpoint["iteration"] + 1 if checkpoint else 1
     # DPO's pairs are stage 2's, drawn with stage 2's seed: before stage 3's random state is set or restored
-    pairs = dpo_pairs(reference, args, device) if args.dpo else None
+    pairs = dpo_pairs(reference, args, device) if args.dpo or args.kto else None
     torch.manual_seed(args.seed + 2)
     if checkpoint:
         agent.load_state_dict(checkpoint["agent"])
         optimizer.load_state_dict(checkpoint["optimizer"])
         torch.set_rng_state(checkpoint["torch_rng_state"])
         print(f"resuming {run_dir} at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})")
-    update = dpo_update if args.dpo else torch.compile(ppo_update) if args.compile else ppo_update
+    update = dpo_update if pairs else torch.compile(ppo_update) if args.compile else ppo_update
     table = "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items())
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
     start_time = time.time()
@@ -555,7 +614,7 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         mask = batch["mask"]
         rewards = compute_rewards(batch["scores"], batch["logprobs"], batch["ref_logprobs"], mask, kl_coef)
         data = batch  # what the update learns from: the rollout, or DPO's pairs
-        if args.dpo:  # no advantages: a batch of the reward model's training pairs, drawn anew each iteration
+        if pairs:  # DPO, KTO: no advantages, a batch of the reward model's training pairs, drawn anew each iteration
             rows = torch.randint(len(pairs["chosen_ref"]), (args.batch_size,), device=device)
             data = {key: value[rows] for key, value in pairs.items()}
         elif args.advantage == "gae":
@@ -576,7 +635,7 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
 
         # LOGGING: the mean over every minibatch of the update, and what the rollout's responses show.
         losses = {name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]}
-        if args.advantage == "gae" and not args.dpo:  # a critic was fitted
+        if args.advantage == "gae" and not pairs:  # a critic was fitted
             returns = batch["returns"][mask.bool()]
             losses["explained_variance"] = (1 - (returns - batch["values"][mask.bool()]).var() / returns.var()).item()
         prompts = (batch["tokens"][:, 2] * len(WORDS) + batch["tokens"][:, 4]).float()  # its NOUN and ADJ, one number
@@ -594,7 +653,7 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
             f"{name} {stats[f'rlhf/{name}']:+.2f}" for name in ("score", "gold_score", "kl", "rm_accuracy")
         )
         text += f" | beta {kl_coef:.3g} | SPS {sps:.0f}"
-        stage = "stage 3, DPO: iteration" if args.dpo else "stage 3, PPO: iteration"
+        stage = f"stage 3, {'KTO' if args.kto else 'DPO' if args.dpo else 'PPO'}: iteration"
         report(stage, iteration, num_iterations, start_time, text, start_iteration - 1)
 
         # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
@@ -626,7 +685,7 @@ def train(args, stop=()):
     device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device)
     if checkpoint:  # a resumed stage 3: stages 1 and 2 are in its checkpoint
         sft = new_model(args, device, checkpoint["reference"])
-        reward_model = new_model(args, device, checkpoint["reward_model"])
+        reward_model = new_model(args, device, checkpoint["reward_model"], args.rm_ensemble)
     else:
         os.makedirs(run_dir, exist_ok=True)
         sft = train_sft(args, run_dir, device, stop)
@@ -675,6 +734,7 @@ RANGES = {"seed": (-math.inf, math.inf), "no_eos_score": (-math.inf, math.inf), 
 # The shortest response, "the NOUN was ADJ <eos>", is 5 tokens; 100 comparisons hold out 10 to measure the RM with.
 RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "response_length": (5, BLOCK_SIZE - PROMPT_LENGTH)}
 RANGES |= {"rm_pairs": (100, math.inf), "group_size": (2, math.inf)}
+RANGES |= {"kto_desirable_share": (0, 1), "uwo_coef": (0, math.inf)}
 
 
 def check_args(args):
@@ -694,8 +754,12 @@ def check_args(args):
     for name, whole in [("n_head", "d_model"), ("minibatch_size", "batch_size"), *grpo]:
         if getattr(args, whole) % getattr(args, name):
             raise ValueError(f"{flag(name)} {getattr(args, name)} does not divide {flag(whole)} {getattr(args, whole)}")
-    if args.dpo and (args.adaptive_kl or args.kl_coef == 0 or args.advantage != "gae"):
-        raise ValueError("--dpo takes its beta from a positive, fixed --kl-coef, and has no --advantage")
+    if args.dpo and args.kto:
+        raise ValueError("--dpo and --kto are two losses of stage 3: take one")
+    if (args.dpo or args.kto) and (args.adaptive_kl or args.kl_coef == 0 or args.advantage != "gae"):
+        raise ValueError("--dpo and --kto take their beta from a positive, fixed --kl-coef, and have no --advantage")
+    if not all(math.isfinite(weight) and weight > 0 for weight in args.kto_weights):
+        raise ValueError(f"--kto-weights must be two positive numbers, got {args.kto_weights}")
     if args.ipo and not args.dpo:
         raise ValueError("--ipo is a loss of --dpo: add --dpo")
     if args.adaptive_kl and args.kl_coef == 0:
@@ -715,8 +779,9 @@ def check_args(args):
         raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {path}")
     for name, stage in (("sft_checkpoint", "sft"), ("reward_model_checkpoint", "reward_model")):
         trained = load_checkpoint(getattr(args, name), args, stage)[1] if getattr(args, name) else args
-        if any(getattr(trained, field) != getattr(args, field) for field in ("d_model", "n_layer", "n_head")):
-            raise ValueError(f"{flag(name)} holds a network of another --d-model, --n-layer or --n-head")
+        fields = ("d_model", "n_layer", "n_head") + ("rm_ensemble",) * (stage == "reward_model")
+        if any(getattr(trained, field) != getattr(args, field) for field in fields):
+            raise ValueError(f"{flag(name)} holds a network of another --d-model, --n-layer, --n-head or --rm-ensemble")
     if args.resume is not None:
         load_checkpoint(args.resume, args)
 

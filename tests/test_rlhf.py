@@ -361,8 +361,14 @@ BAD_INPUTS = [
     (["--adaptive-kl", "--kl-coef", "0"], "--adaptive-kl needs a positive --kl-coef"),
     (["--advantage", "grpo", "--group-size", "7"], "--group-size 7 does not divide --batch-size 64"),
     (["--advantage", "grpo", "--group-size", "1"], "--group-size must be in [2, inf]"),
-    (["--dpo", "--kl-coef", "0"], "--dpo takes its beta from a positive, fixed --kl-coef"),
-    (["--dpo", "--advantage", "rloo"], "--dpo takes its beta from a positive, fixed --kl-coef, and has no --advantage"),
+    (["--dpo", "--kl-coef", "0"], "--dpo and --kto take their beta from a positive, fixed --kl-coef"),
+    (["--kto", "--advantage", "rloo"], "--dpo and --kto take their beta from a positive, fixed --kl-coef, and have no"),
+    (["--dpo", "--kto"], "--dpo and --kto are two losses of stage 3: take one"),
+    (["--kto", "--kto-weights", "1", "nan"], "--kto-weights must be two positive numbers, got (1.0, nan)"),
+    (["--kto", "--kto-desirable-share", "1.5"], "--kto-desirable-share must be in [0, 1]"),
+    (["--rm-ensemble", "0"], "--rm-ensemble must be positive"),
+    (["--rm-ensemble", "2", "--uwo-coef", "-1"], "--uwo-coef must be in [0, inf]"),
+    (["--rm-ensemble-agg", "max"], "invalid choice"),
     (["--ipo"], "--ipo is a loss of --dpo: add --dpo"),
     (["--value-model", "both"], "invalid choice"),
     (["--device", "tpu"], "--device tpu is not available"),
@@ -584,9 +590,100 @@ def test_ipo_is_the_squared_distance_of_the_log_ratio_margin_from_its_target():
         assert abs(log_ratio_margin(agent.policy, mb) - 1 / (2 * tau)) < abs(h - 1 / (2 * tau))
 
 
-def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(tmp_path):
-    out = run_cli(SCRIPT, *TINY_FLAGS, "--dpo", "--kl-coef", "0.1", "--run-dir", "run", cwd=tmp_path).stdout
-    assert "stage 3, DPO: iteration 4/4" in out
+def kto_by_hand(agent, mb, beta, weights, kept):
+    """KTO's loss from its definition: each response's implied reward r = beta (log pi - log pi_SFT), the reference
+    point z0 = max(0, that of the mismatched pair), and lambda (1 - sigmoid(+-(r - z0))) averaged over the responses
+    kept."""
+    r = {
+        side: beta
+        * (rlhf.sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"], 1.0) - mb[f"{side}_ref"])
+        for side in ("chosen", "rejected", "kl")
+    }
+    z0 = max(0.0, r["kl"].item())
+    losses = [weights[1] * (1 - 1 / (1 + math.exp(-(z0 - r["rejected"].item()))))]
+    if kept:
+        losses.append(weights[0] * (1 - 1 / (1 + math.exp(-(r["chosen"].item() - z0)))))
+    return sum(losses) / len(losses)
+
+
+@pytest.mark.parametrize("kept", [True, False])
+def test_kto_judges_each_response_alone_against_the_reference_point(kept):
+    """Ethayarajh et al. 2024's loss by hand, with lambda_D 1 and lambda_U 2, on a policy that has moved away from
+    pi_SFT, whose mismatched pair (the rejected response after the chosen one's prompt) sets z0; without the chosen
+    response (--kto-desirable-share), the rejected one's term alone. A step lowers it, and z0 takes no gradient."""
+    agent, mb = moved_policy_and_pair()
+    mismatched, kl_mask = tokens_of("the plot was bad and the cast was fine <eos>")
+    mismatched[:, : rlhf.PROMPT_LENGTH] = mb["chosen_tokens"][:, : rlhf.PROMPT_LENGTH]
+    torch.manual_seed(1)
+    sft = rlhf.TinyLM(16, 1, 2)  # moved_policy_and_pair's pi_SFT: the first of its two draws
+    mb |= {"kl_tokens": mismatched, "kl_mask": kl_mask, "kept": torch.tensor([kept])}
+    mb["kl_ref"] = rlhf.sequence_logprobs(sft, mismatched, kl_mask, 1.0).detach()
+    args = rlhf.Args(kl_coef=0.5, kto=True, kto_weights=(1.0, 2.0))
+    expected = kto_by_hand(agent, mb, 0.5, (1.0, 2.0), kept)
+    stats = rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)
+    assert stats["loss"].item() == pytest.approx(expected, rel=1e-5)
+    rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.1), mb, args)
+    assert rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)["loss"] < stats["loss"]
+
+
+def test_kto_pairs_take_each_pairs_prompt_and_the_previous_pairs_rejected_response(tiny_run):
+    """dpo_pairs for KTO: "kl" is pair i's prompt with pair i - 1's rejected response, with pi_SFT's log-prob of that,
+    and "kept" the first --kto-desirable-share of the pairs."""
+    _, run_dir = tiny_run
+    args = rlhf.Args(**{**vars(rlhf_tiny_args(run_dir.parent)), "kto": True, "kto_desirable_share": 0.25})
+    sft = rlhf.new_model(args, "cpu", torch.load(run_dir / "sft.pt", weights_only=True)["model"])
+    pairs = rlhf.dpo_pairs(sft, args, "cpu")
+    P = rlhf.PROMPT_LENGTH
+    assert torch.equal(pairs["kl_tokens"][:, :P], pairs["chosen_tokens"][:, :P])
+    assert torch.equal(pairs["kl_tokens"][:, P:], pairs["rejected_tokens"].roll(1, 0)[:, P:])
+    assert torch.equal(pairs["kl_mask"], pairs["rejected_mask"].roll(1, 0))
+    ref = rlhf.sequence_logprobs(sft, pairs["kl_tokens"], pairs["kl_mask"], 1.0)
+    torch.testing.assert_close(pairs["kl_ref"], ref)
+    n = len(pairs["kept"])
+    assert pairs["kept"].tolist() == [i < 0.25 * n for i in range(n)]
+
+
+def test_each_ensemble_aggregate_is_the_reward_ppo_learns_from(tiny_run, tmp_path, monkeypatch):
+    """--rm-ensemble 3: the scores that compute_rewards turns into PPO's rewards are the members' mean, minimum, or
+    mean - lambda x variance (over members, K - 1 in the denominator), computed here from each member's own score."""
+    _, run_dir = tiny_run
+    seen = []
+    rollout = rlhf.rollout
+    compute_rewards = rlhf.compute_rewards
+
+    def rollout_seen(agent, reference, reward_model, args):
+        batch = rollout(agent, reference, reward_model, args)
+        seen.append((reward_model, batch))
+        return batch
+
+    def compute_rewards_seen(scores, *rest):
+        seen.append(scores)
+        return compute_rewards(scores, *rest)
+
+    monkeypatch.setattr(rlhf, "rollout", rollout_seen)
+    monkeypatch.setattr(rlhf, "compute_rewards", compute_rewards_seen)
+    for aggregate in ("mean", "min", "uwo"):
+        seen.clear()
+        args = rlhf_tiny_args(tmp_path, aggregate, rm_ensemble=3, rm_ensemble_agg=aggregate, uwo_coef=0.7)
+        rlhf.train(rlhf.Args(**{**vars(args), "sft_checkpoint": str(run_dir / "sft.pt")}))
+        (ensemble, batch), scores = seen[0], seen[1]  # the first iteration's rollout, and the scores of its rewards
+        members = np.array([m.score(batch["tokens"], batch["mask"]).tolist() for m in ensemble])
+        assert len(members) == 3 and not np.allclose(members[0], members[1])  # three reward models, not one
+        by_hand = {
+            "mean": members.mean(0),
+            "min": members.min(0),
+            "uwo": members.mean(0) - 0.7 * members.var(0, ddof=1),
+        }
+        expected = np.where(batch["has_eos"].numpy() > 0, by_hand[aggregate], args.no_eos_score)
+        np.testing.assert_allclose(scores.numpy(), expected, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(batch["rm_members"].numpy(), members.T, rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["DPO", "KTO"])
+def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(method, tmp_path):
+    flag = f"--{method.lower()}"
+    out = run_cli(SCRIPT, *TINY_FLAGS, flag, "--kl-coef", "0.1", "--run-dir", "run", cwd=tmp_path).stdout
+    assert f"stage 3, {method}: iteration 4/4" in out
     scalars = tb_scalars(tmp_path / "run")
     assert {"rlhf/score", "rlhf/gold_score", "rlhf/kl", "losses/implicit_accuracy"} <= set(scalars)
     assert "losses/value_loss" not in scalars
