@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import os
 import platform
+import re
 import statistics
 import subprocess
 from dataclasses import dataclass
@@ -41,6 +42,12 @@ RLHF_STATS = (
     "garbled",
     "rm_pairs",
 )
+
+# What rlhf/rm_accuracy measures, in the CSV header of each RLHF run that measured it so (ppo_rlhf.py from 605ebaa on):
+# before, a pool of every rollout's first 16 responses, mostly pairs to different prompts, which the RM never learned.
+RM_ACCURACY = "pairs to one prompt among the last 640 responses"
+# An --rm-ensemble run's members (ppo_rlhf.py's rlhf/rm_disagreement and rlhf/rm_member<k>), in <folder>/ensemble/.
+ENSEMBLE_STATS = ("rm_disagreement",)
 
 # best_of_n.py's columns, in <folder>/best_of_n/seed<N>.csv.
 BEST_OF_N = ("n", "kl", "score", "gold_score", "well_formed", "spam", "garbled", "rm_accuracy")
@@ -100,12 +107,14 @@ class RunLogs:
     rlhf: list | None  # an RLHF run: (step, *RLHF_STATS) per iteration
     rm_held_out_accuracy: float | None  # an RLHF run: its reward model's accuracy on held-out pairs
     samples: list[str]  # an RLHF run: the responses it printed last, with their scores
+    ensemble: list | None = None  # an --rm-ensemble run: (step, rm_disagreement, each member's score) per iteration
 
     def header(self):
         """The CSV header lines that come from the run's own logs: [(key, value), ...]."""
         return [
             *([("beta_range", self.beta_range)] if self.beta_range else []),
             *([("rm_held_out_accuracy", f"{self.rm_held_out_accuracy:.4f}")] if self.rm_held_out_accuracy else []),
+            *([("rm_accuracy", RM_ACCURACY)] if self.rlhf else []),
         ]
 
 
@@ -139,6 +148,7 @@ def read_run(run_dir):
         early = betas[: int(0.9 * len(betas))] or betas
         beta_range = f"{min(betas):.3g}..{max(betas):.3g} (first 90% of updates: {min(early):.3g}..{max(early):.3g})"
     rlhf = scalars(acc, "rlhf/", RLHF_STATS)
+    members = sorted(tag[len("rlhf/") :] for tag in acc.Tags()["scalars"] if re.fullmatch(r"rlhf/rm_member\d+", tag))
     return RunLogs(
         global_step=checkpoint["global_step"],
         rows=rows,
@@ -148,6 +158,7 @@ def read_run(run_dir):
         rlhf=rlhf,
         rm_held_out_accuracy=held_out_accuracy(run_dir),
         samples=last_samples(run_dir) if rlhf else [],
+        ensemble=scalars(acc, "rlhf/", (*ENSEMBLE_STATS, *sorted(members, key=len))) if members else None,
     )
 
 
@@ -205,6 +216,9 @@ def write_run(results_dir, name, header, logs):
     if logs.rlhf:  # the rlhf/* scalars per iteration, and the responses the run printed last
         write_series(results_dir / "rlhf" / f"{name}.csv", RLHF_STATS, logs.rlhf)
         (results_dir / "samples").mkdir(parents=True, exist_ok=True)
+        if logs.ensemble:
+            members = [f"rm_member{k}" for k in range(len(logs.ensemble[0]) - 1 - len(ENSEMBLE_STATS))]
+            write_series(results_dir / "ensemble" / f"{name}.csv", (*ENSEMBLE_STATS, *members), logs.ensemble)
         (results_dir / "samples" / f"{name}.txt").write_text("".join(f"{line}\n" for line in logs.samples))
     path = results_dir / f"{name}.csv"
     write_csv(path, [*header, *logs.header()], logs.rows)  # last: the CSV's presence means the run is finished
@@ -307,6 +321,16 @@ def read_rlhf_series(folder):
     return {
         (variant, seed): np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
         for _, variant, seed, path in run_files(Path(folder) / "rlhf")
+    }
+
+
+def read_ensemble_series(folder):
+    """{(variant, seed): numpy array [iterations, 1 + len(ENSEMBLE_STATS) + K]} from <folder>/ensemble/."""
+    import numpy as np
+
+    return {
+        (variant, seed): np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+        for _, variant, seed, path in run_files(Path(folder) / "ensemble")
     }
 
 
