@@ -4,6 +4,7 @@ arithmetic of the paper's (Table 1's normalized score, its verdict, the differen
 import csv
 import math
 import statistics
+import subprocess
 import sys
 import types
 
@@ -14,7 +15,7 @@ from conftest import ROOT, fake_random, fake_run, load_script
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import report  # noqa: E402
 
-from reports import base, figure3, mujoco, rlhf, table1, training  # noqa: E402
+from reports import base, figure3, mujoco, rlhf, rlhf_series, table1, training  # noqa: E402
 from results import (  # noqa: E402
     BEST_OF_N,
     RESULTS,
@@ -471,7 +472,7 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
     assert block.startswith(rlhf.RLHF_START) and block.endswith(rlhf.RLHF_END)
     # Tenths count from the end, so that the last is the last tenth of the iterations, as report.md's table takes it.
     series = np.arange(25.0)[:, None].repeat(1 + len(RLHF_STATS), axis=1)
-    assert rlhf.tenths(series, "score")[-1] == (23 + 24) / 2
+    assert rlhf_series.tenths(series, "score")[-1] == (23 + 24) / 2
 
 
 def test_the_committed_figure3_report_is_what_report_py_makes_of_the_csvs(tmp_path):
@@ -559,14 +560,14 @@ def test_gaos_forms_are_fitted_back_from_points_of_known_alpha_and_beta(form):
     d = np.linspace(0.05, 6.0, 40)
     curve = {"bon": lambda x: x * (alpha - beta * x), "rl": lambda x: x * (alpha - beta * np.log(x))}[form]
     noisy = curve(d) + np.random.default_rng(0).normal(0, 0.02, d.size)
-    fitted_alpha, fitted_beta, peak, at_peak = rlhf.fit_gao(d, noisy, form)
+    fitted_alpha, fitted_beta, peak, at_peak = rlhf_series.fit_gao(d, noisy, form)
     assert fitted_alpha == pytest.approx(alpha, abs=0.03) and fitted_beta == pytest.approx(beta, abs=0.03)
     grid = np.linspace(0.01, 20.0, 200_001)
-    exact_alpha, exact_beta, exact_peak, exact_at_peak = rlhf.fit_gao(d, curve(d), form)
+    exact_alpha, exact_beta, exact_peak, exact_at_peak = rlhf_series.fit_gao(d, curve(d), form)
     assert exact_peak == pytest.approx(grid[np.argmax(curve(grid))], abs=1e-3)
     assert exact_at_peak == pytest.approx(curve(grid).max(), rel=1e-6)
     assert peak == pytest.approx(exact_peak, rel=0.1) and at_peak == pytest.approx(exact_at_peak, rel=0.1)
-    rising = rlhf.fit_gao(d, d * 2.0, form)  # no fall in the data: no peak to report
+    rising = rlhf_series.fit_gao(d, d * 2.0, form)  # no fall in the data: no peak to report
     assert rising[3] == float("inf") or rising[2] > d.max() * 5
 
 
@@ -622,3 +623,28 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     summary = "\n".join(over.summary_lines(folder, tmp_path))  # the README's, beside the rlhf suite's block
     assert "12 runs of 102,400 responses, seeds 1, 2, 3, β = 0 with reward models from 1,024, 4,096, 16,384" in summary
     assert all(line in summary for line in text.splitlines() if line.startswith("- **("))
+
+
+def test_a_clone_of_one_commit_regenerates_the_rlhf_report_and_block_unchanged(tmp_path):
+    """What a run's RM accuracy measures is in its CSV (results.RM_ACCURACY), not asked of git: a clone made with
+    --depth 1, as CI's default checkout on the big hosting services, has no history to ask, and regenerates the rlhf
+    suite's report and the README's RLHF block as committed."""
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "--quiet", "--depth", "1", f"file://{ROOT}", str(clone)], check=True)
+    depth = subprocess.run(["git", "rev-list", "--count", "HEAD"], cwd=clone, capture_output=True, text=True)
+    assert depth.stdout.strip() == "1"
+    check = """if True:
+        import sys
+        from pathlib import Path
+        sys.path.insert(0, "benchmarks")
+        from reports import rlhf
+        from results import load_runs
+        readme = Path("benchmarks/README.md").read_text()
+        start, end = readme.index(rlhf.RLHF_START), readme.index(rlhf.RLHF_END) + len(rlhf.RLHF_END)
+        assert readme[start:end] == rlhf.rlhf_block(), "the README's RLHF block differs"
+        folder = Path("benchmarks/results/rlhf")
+        committed = (folder / "report.md").read_text()
+        assert rlhf.rlhf_report(folder, load_runs(folder)) == committed, "the rlhf report differs"
+    """
+    proc = subprocess.run([sys.executable, "-c", check], cwd=clone, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]

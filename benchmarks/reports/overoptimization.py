@@ -11,7 +11,7 @@ import math
 from pathlib import Path
 
 from reports.base import fmt, ordered_variants, provenance, save_figure
-from reports.rlhf import direct_variants, falls, fit_gao, plot_rlhf_seeds, tenths
+from reports.rlhf_series import direct_variants, falls, fit_gao, plot_rlhf_seeds, tenths
 from reports.stats import mean_std
 from results import BEST_OF_N, RLHF_STATS, load_runs, read_best_of_n, read_rlhf_series
 from suites import SUITES
