@@ -583,7 +583,7 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     rl = {1024: (1.5, 1.0), 4096: (2.0, 1.0), 16384: (2.2, 0.9)}  # d* = e^(alpha / beta - 1): 1.65, 2.72, 4.2
     bon = {1024: (2.0, 0.5), 4096: (3.0, 0.5), 16384: (3.5, 0.5)}
     noise = np.random.default_rng(0)
-    for variant in SUITES["rlhf-long"].variants:
+    for variant in [v for v in SUITES["rlhf-long"].variants if over.ensemble_of(v) == 1]:  # ensembles: the next test
         pairs, d_end = over.rm_pairs(variant), 4.5 if over.beta_of(variant) == 0 else 2.0
         for seed in (1, 2, 3):
             fake_run(folder, "reviews", variant, seed, 1.0, steps=102_400)
@@ -623,6 +623,55 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     summary = "\n".join(over.summary_lines(folder, tmp_path))  # the README's, beside the rlhf suite's block
     assert "12 runs of 102,400 responses, seeds 1, 2, 3, β = 0 with reward models from 1,024, 4,096, 16,384" in summary
     assert all(line in summary for line in text.splitlines() if line.startswith("- **("))
+
+
+def test_the_overoptimization_report_answers_whether_an_ensemble_peaks_later_and_higher_and_herds(tmp_path):
+    """Issue 60: single-RM runs drawn from Gao et al.'s RL form with d* 2.72, and 4-RM ensemble runs from one with
+    d* 4.06, higher, each past its peak: (d) the ensemble peaks later and higher than the same seed's single RM; (e)
+    where every member's score keeps rising as gold falls, each fallen run herds, and the members' disagreement,
+    tripled by the gold peak, rose first; with one member that turns down after the peak, that run does not herd."""
+    from reports import overoptimization as over
+
+    folder = tmp_path / "rlhf-long"
+    arms = {"beta0": (2.0, 1.0, 4.5), "ens4-mean": (2.4, 1.0, 6.0)}  # alpha, beta, the last d
+    for variant, (alpha, beta, d_end) in arms.items():
+        for seed in (1, 2, 3):
+            fake_run(folder, "reviews", variant, seed, 1.0, steps=102_400)
+            d = np.linspace(0.05, d_end, 200)
+            gold = 1.0 + over.curve("rl", alpha, beta, d)
+            rows = []
+            for i in range(200):
+                stats = {"score": i / 199, "gold_score": gold[i], "kl": d[i] ** 2, "spam": 0.0, "garbled": 0.0}
+                rows.append([(i + 1) * 512] + [stats.get(name, 0.5) for name in RLHF_STATS])
+            write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", RLHF_STATS, rows)
+            if variant == "ens4-mean":
+                peak = int(np.argmax(gold))
+                spread = 0.1 + 0.2 * np.minimum(np.arange(200), peak) / peak  # 0.1 at first, 0.3 by the gold peak
+                members = [np.arange(200) / 199 + k / 10 for k in range(4)]
+                if seed == 3:  # one member turns down after the gold peak
+                    members[0] = np.where(np.arange(200) > peak, 2 * members[0][peak] - members[0], members[0])
+                rows = [[(i + 1) * 512, spread[i], *(m[i] for m in members)] for i in range(200)]
+                columns = ("rm_disagreement", *(f"rm_member{k}" for k in range(4)))
+                write_series(folder / "ensemble" / f"reviews__{variant}__seed{seed}.csv", columns, rows)
+    text = report.report(folder, results=tmp_path)
+
+    def peak(alpha, beta, d_end):  # the window of 20 iterations of highest mean gold: its gain over the first, its d
+        d = np.linspace(0.05, d_end, 200)
+        gold = (1.0 + over.curve("rl", alpha, beta, d)).reshape(10, 20).mean(1)
+        return gold.max() - (1.0 + over.curve("rl", alpha, beta, d[0])), np.sqrt((d**2).reshape(10, 20).mean(1))[
+            gold.argmax()
+        ]
+
+    (single_gain, single_d), (gain, d_peak) = peak(*arms["beta0"]), peak(*arms["ens4-mean"])
+    (d,) = [line for line in text.splitlines() if line.startswith("- **(d)")]
+    assert f"`ens4-mean` peaks at gold gain {gain:.2f} ± 0.00 at d {d_peak:.2f} ± 0.00" in d
+    assert f"its peak gain is above it ({gain - single_gain:+.2f} ± 0.00, mean ± standard error over 3 seeds)" in d
+    assert f"its peak's d above its ({d_peak - single_d:+.2f} ± 0.00" in d and gain > single_gain
+    (e,) = [line for line in text.splitlines() if line.startswith("- **(e)")]
+    assert "Of 3 ensemble runs, 3 fell (the rule above); in 2 of them every member rated the fallen text" in e
+    assert "and in 3 the disagreement at the gold peak was more than twice that of the first window" in e
+    assert "ens4-mean seed 3: gold " in e and "; 3 of 4 members rated the last window" in e
+    assert "| ens4-mean | 4,096 × 4 |" in text
 
 
 def test_a_clone_of_one_commit_regenerates_the_rlhf_report_and_block_unchanged(tmp_path):

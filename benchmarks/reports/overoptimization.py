@@ -1,9 +1,12 @@
 """The rlhf-long family: over-optimization measured as Gao et al. 2022 (arXiv:2210.10760) measured it. Runs long
 enough to pass the gold peak; gold against d = sqrt(KL[pi || pi_SFT]); their functional forms fitted for each reward
 model size, to best-of-N (R = d (alpha - beta d)) and to the RL runs (R = d (alpha - beta log d)); and the three
-claims the issue asks about, answered from those numbers: (a) does a weaker RM peak earlier and lower, (b) do runs
-with a KL penalty lie on the unpenalized run's curve, stopping earlier, and (c) does PPO fall below best-of-N at equal
-d. The figure has a panel each for the KL penalty, the group baselines, DPO (the rlhf suite's arms) and the RM size."""
+claims the issues ask about, answered from those numbers: (a) does a weaker RM peak earlier and lower, (b) do runs
+with a KL penalty lie on the unpenalized run's curve, stopping earlier, (c) does PPO fall below best-of-N at equal d,
+(d) does an ensemble of reward models peak later or higher than one, and (e) when the policy falls, do all members
+overrate what it writes (herding), or does their disagreement rise first. The figure has a panel each for the KL
+penalty, the group baselines, DPO, IPO and KTO (the rlhf suite's arms), the RM size and the ensembles; a second
+figure follows the ensembles' members."""
 
 from __future__ import annotations
 
@@ -13,7 +16,15 @@ from pathlib import Path
 from reports.base import fmt, ordered_variants, provenance, save_figure
 from reports.rlhf_series import direct_variants, falls, fit_gao, plot_rlhf_seeds, tenths
 from reports.stats import mean_std
-from results import BEST_OF_N, RLHF_STATS, load_runs, read_best_of_n, read_rlhf_series
+from results import (
+    BEST_OF_N,
+    ENSEMBLE_STATS,
+    RLHF_STATS,
+    load_runs,
+    read_best_of_n,
+    read_ensemble_series,
+    read_rlhf_series,
+)
 from suites import SUITES
 
 ORDER = 0
@@ -29,6 +40,12 @@ def rm_pairs(variant, suite=SUITE):
     """The --rm-pairs of a variant's flags, or the script's default (4,096)."""
     flags = SUITES[suite].variants[variant][1]
     return int(flags[flags.index("--rm-pairs") + 1]) if "--rm-pairs" in flags else DEFAULT_PAIRS
+
+
+def ensemble_of(variant, suite=SUITE):
+    """The --rm-ensemble of a variant's flags: its number of reward models (1 without the flag)."""
+    flags = SUITES[suite].variants[variant][1]
+    return int(flags[flags.index("--rm-ensemble") + 1]) if "--rm-ensemble" in flags else 1
 
 
 def best_of_n_folder(results, pairs):
@@ -151,7 +168,7 @@ def measure(folder, runs, results):
             d, gain = bon_points(table)
             fits["bon", pairs, seed] = (*fit_gao(d, gain, "bon"), float(d.max()))
         for (variant, seed), run in series.items():
-            if rm_pairs(variant) == pairs and beta_of(variant) == 0:
+            if rm_pairs(variant) == pairs and beta_of(variant) == 0 and ensemble_of(variant) == 1:
                 d, gain = points(run, sft_of[variant, seed])
                 fits["rl", pairs, seed] = (*fit_gao(d, gain, "rl"), float(d.max()))
     return series, variants, held_out, sizes, best, sft_of, fits
@@ -175,7 +192,8 @@ def summary_lines(folder, results):
         garbled = sum(k in fell and end(series[k], "garbled") > 0.5 for k in keys)
         counts.append(f"{variant} {sum(k in fell for k in keys)} of {len(keys)} ({garbled} onto garbled text)")
     lines.append(f"  - **Over-optimized** (the rule above, over windows of {WINDOW} iterations): {', '.join(counts)}.")
-    return lines + [f"  {line}" for line in claims(series, sft_of, fits, sizes, best)]
+    claimed = claims(series, sft_of, fits, sizes, best) + ensemble_claims(series, sft_of, read_ensemble_series(folder))
+    return lines + [f"  {line}" for line in claimed]
 
 
 def write_report(folder, runs, reference, results):
@@ -202,7 +220,8 @@ def write_report(folder, runs, reference, results):
     for variant in variants:
         keys = sorted(k for k in series if k[0] == variant)
         peaks = [peak_of(series[k], sft_of[k]) for k in keys]
-        cells = [f"{rm_pairs(variant):,}", cell([held_out[k] for k in keys if k in held_out])]
+        members = f" × {ensemble_of(variant)}" if ensemble_of(variant) > 1 else ""
+        cells = [f"{rm_pairs(variant):,}{members}", cell([held_out[k] for k in keys if k in held_out])]
         cells.append(cell([end(series[k], "gold_score") for k in keys]))
         cells.append(cell([p[0] + sft_of[k] for p, k in zip(peaks, keys, strict=True)]))
         cells.append(cell([p[1] for p in peaks]))
@@ -260,6 +279,8 @@ def write_report(folder, runs, reference, results):
                 lines.append(f"| {pairs:,} | {cell(accuracy)} | {FORMS[form]} | " + " | ".join(cells) + " |")
     lines += ["", "## The claims, from these numbers", ""]
     lines += claims(series, sft_of, fits, sizes, best)
+    ensemble = read_ensemble_series(folder)
+    lines += ensemble_claims(series, sft_of, ensemble)
     lines += [
         "",
         "![gold against sqrt(KL), per panel](curves/panels.png)",
@@ -331,7 +352,7 @@ def claims(series, sft_of, fits, sizes, best):
     parts = []
     by_size = {}
     for pairs in sizes:
-        keys = [k for k in series if rm_pairs(k[0]) == pairs and beta_of(k[0]) == 0]
+        keys = [k for k in series if rm_pairs(k[0]) == pairs and beta_of(k[0]) == 0 and ensemble_of(k[0]) == 1]
         peaks = [peak_of(series[k], sft_of[k]) for k in keys]
         by_size[pairs] = peaks
         rl = [v for (f, p, _), v in sorted(fits.items()) if f == "rl" and p == pairs]
@@ -353,10 +374,7 @@ def claims(series, sft_of, fits, sizes, best):
         )
     # (b) the penalized runs against the same seed's beta-0 run: its points in the bins of d both visited, its fit
     penalized = sorted(k for k in series if beta_of(k[0]) > 0)
-    unleashed = {
-        k: next((u for u in series if u[1] == k[1] and beta_of(u[0]) == 0 and rm_pairs(u[0]) == rm_pairs(k[0])), None)
-        for k in penalized
-    }
+    unleashed = {k: single_rm_run(series, k[1], rm_pairs(k[0])) for k in penalized}
     pairs_b = [(k, u) for k, u in unleashed.items() if u is not None and ("rl", rm_pairs(u[0]), u[1]) in fits]
     if pairs_b:
         gaps = [binned_gap(series[k], series[u], sft_of[k]) for k, u in pairs_b]
@@ -375,9 +393,8 @@ def claims(series, sft_of, fits, sizes, best):
     rows = []
     for pairs in sizes:
         for beta in sorted({beta_of(k[0]) for k in series if rm_pairs(k[0]) == pairs}):
-            keys = [
-                k for k in series if rm_pairs(k[0]) == pairs and beta_of(k[0]) == beta and ("bon", pairs, k[1]) in fits
-            ]
+            keys = [k for k in series if (rm_pairs(k[0]), beta_of(k[0]), ensemble_of(k[0])) == (pairs, beta, 1)]
+            keys = [k for k in keys if ("bon", pairs, k[1]) in fits]
             if not keys:
                 continue
             d_max = {k: bon_points(best[pairs][k[1]][1])[0].max() for k in keys}
@@ -390,6 +407,87 @@ def claims(series, sft_of, fits, sizes, best):
             + "; ".join(rows)
             + ". Best-of-N's d is drawn at its KL's upper bound, so at equal true KL its curve lies at least this high"
             " where it rises."
+        )
+    return lines
+
+
+def window_means(values):
+    """The mean of `values`, one per iteration, over each window of WINDOW iterations, counted from the end as tenths()
+    counts them."""
+    import numpy as np
+
+    first = len(values) % WINDOW
+    return [float(np.mean(values[i : i + WINDOW])) for i in range(first, len(values), WINDOW)]
+
+
+def single_rm_run(series, seed, pairs):
+    """The key of the seed's β = 0 run with one reward model of `pairs` pairs, or None."""
+    keys = [k for k in series if k[1] == seed and beta_of(k[0]) == 0 and rm_pairs(k[0]) == pairs]
+    return next((k for k in keys if ensemble_of(k[0]) == 1), None)
+
+
+def ensemble_claims(series, sft_of, ensemble):
+    """The report's answers to (d) and (e), from the ensemble runs and the same seeds' single-RM runs at β = 0."""
+    import numpy as np
+
+    lines = []
+    keys = sorted(k for k in series if ensemble_of(k[0]) > 1)
+    parts = []
+    for variant in sorted({k[0] for k in keys}, key=list(SUITES[SUITE].variants).index):
+        pairs = [(k, single_rm_run(series, k[1], rm_pairs(k[0]))) for k in keys if k[0] == variant]
+        pairs = [(k, u) for k, u in pairs if u is not None]
+        if not pairs:
+            continue
+        mine = [peak_of(series[k], sft_of[k]) for k, _ in pairs]
+        theirs = [peak_of(series[u], sft_of[u]) for _, u in pairs]
+        higher = [m[0] - t[0] for m, t in zip(mine, theirs, strict=True)]
+        later = [m[1] - t[1] for m, t in zip(mine, theirs, strict=True)]
+        parts.append(
+            f"`{variant}` peaks at gold gain {cell([m[0] for m in mine])} at d {cell([m[1] for m in mine])}; minus the"
+            f" same seed's single RM, its peak gain is {verdict(higher, 'it')}, and its peak's d"
+            f" {verdict(later, 'its')}"
+        )
+    if parts:
+        lines.append(
+            "- **(d) Does an ensemble of reward models peak later or higher than one RM on the same pairs?** (Coste et"
+            " al. 2023; peaks over windows of 20 iterations, against the same seed's β = 0 run with one RM) "
+            + "; ".join(parts)
+            + "."
+        )
+    rows, herded, first = [], 0, 0
+    fell = falls(series, direct_variants(), WINDOW)
+    for key in [k for k in keys if k in fell and k in ensemble]:
+        gold = tenths(series[key], "gold_score", width=WINDOW)
+        peak = int(np.argmax(gold))
+        members = ensemble[key][:, 1 + len(ENSEMBLE_STATS) :]
+        windows = [window_means(member) for member in members.T]
+        held = sum(w[-1] >= w[peak] for w in windows)
+        spread = window_means(ensemble[key][:, 1 + ENSEMBLE_STATS.index("rm_disagreement")])
+        rose_first = spread[peak] > 2 * spread[0]
+        herded += held == len(windows)
+        first += rose_first
+        rows.append(
+            f"{key[0]} seed {key[1]}: gold {gold[peak]:.1f} to {gold[-1]:.1f}; {held} of {len(windows)} members"
+            f" rated the last window at least as high as the peak's; their disagreement (std over members)"
+            f" {spread[0]:.2f} in the first window, {spread[peak]:.2f} at the gold peak, {spread[-1]:.2f} at the end"
+        )
+    if keys:
+        fallen = len(rows)
+        answer = (
+            f"Of {len(keys)} ensemble runs, {fallen} fell (the rule above)"
+            + (
+                f"; in {herded} of them every member rated the fallen text at least as high as the peak's (herding),"
+                f" and in {first} the disagreement at the gold peak was more than twice that of the first window: "
+                + "; ".join(rows)
+                if rows
+                else ""
+            )
+            + "."
+        )
+        lines.append(
+            "- **(e) When the policy falls, do all members overrate what it writes (herding), or does the ensemble's"
+            " disagreement rise first?** (Eisenstein et al. 2023: members that share their pretraining, here π_SFT,"
+            " share their blind spots) " + answer
         )
     return lines
 
@@ -434,12 +532,22 @@ def plot_panels(folder, series, sft_of, fits, best, results):
             + arms([n for n in ("beta0.01", "beta0.2", "adaptive") if n in short_names], short),
         ),
         ("group baselines (β = 0.05)", arms(["grpo", "dr-grpo", "rloo", "beta0.05"], short)),
-        ("DPO and IPO (no reward model)", arms(["dpo0.1", "dpo0.5", "ipo0.1"], short)),
-        ("reward model size (β = 0)", arms([v for v in SUITES[SUITE].variants if beta_of(v) == 0], series)),
+        ("DPO, IPO and KTO (no reward model)", arms(["dpo0.1", "dpo0.5", "ipo0.1", "kto0.1", "kto0.1-tenth"], short)),
+        (
+            "reward model size (β = 0)",
+            arms([v for v in SUITES[SUITE].variants if beta_of(v) == 0 and ensemble_of(v) == 1], series),
+        ),
+        (
+            f"reward-model ensembles (β = 0, {DEFAULT_PAIRS:,} pairs)",
+            arms(["beta0", *(v for v in SUITES[SUITE].variants if ensemble_of(v) > 1)], series),
+        ),
     ]
-    fig, axes = plt.subplots(2, 2, figsize=(11, 11), sharey=True)
+    panels = [(title, members) for title, members in panels if members or title.startswith("KL")]
+    fig, axes = plt.subplots((len(panels) + 1) // 2, 2, figsize=(11, 5.5 * ((len(panels) + 1) // 2)), sharey=True)
+    for ax in axes.flat[len(panels) :]:
+        ax.axis("off")
     low, high = g0, g0  # the gold the arms reach, to which the fitted curves are cut
-    for ax, (title, members) in zip(axes.flat, panels, strict=True):
+    for ax, (title, members) in zip(axes.flat, panels, strict=False):
         rm_panel = title.startswith("reward model")
         d_max = 1.5 * math.sqrt(math.log(64) - 63 / 64)  # the panel's widest d: best-of-N's dashed curve, or an arm's
         for i, (label, variant, source) in enumerate(members):
