@@ -349,3 +349,27 @@ def test_two_nodes_on_this_machine_run_one_run(tmp_path):
     ranks = [torch.load(f"{out}.rank{r}.pt", weights_only=False) for r in range(2)]
     assert_same_state(ranks[0]["agent"], ranks[1]["agent"])
     assert (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+def test_compile_under_two_ranks_runs_the_same_algorithm(tmp_path):
+    """--compile with torchrun (issue 59): each rank compiles its minibatch update, and the run computes what the eager
+    2-rank run does, to float tolerance, with the same weights on both ranks."""
+    script = "ppo_continuous.py"
+    losses = {}
+    for name, extra in (("eager", []), ("compiled", ["--compile"])):
+        flags = tiny_flags(script, tmp_path, "--run-dir", str(tmp_path / name), "--seed", "5", *extra)
+        out = tmp_path / name / "result"
+        (tmp_path / name).mkdir()
+        cmd = [*torchrun(), str(ROOT / "tests" / "ranks_worker.py"), "main", script, str(out), "--", *flags]
+        proc = subprocess.run(
+            cmd, cwd=tmp_path, env={**ENV, "TORCH_LOGS": "graph_code"}, capture_output=True, text=True, timeout=400
+        )
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert ("TRACED GRAPH" in proc.stderr) == bool(extra)  # torch prints each graph it compiles
+        ranks = [torch.load(f"{out}.rank{r}.pt", weights_only=False) for r in range(2)]
+        assert_same_state(ranks[0]["agent"], ranks[1]["agent"])
+        losses[name] = tb_scalars(tmp_path / name)
+    for tag in ["losses/policy_loss", "losses/value_loss", "losses/approx_kl"]:
+        eager = [v for _, v in losses["eager"][tag]]
+        compiled = [v for _, v in losses["compiled"][tag]]
+        assert eager and compiled == pytest.approx(eager, rel=1e-3, abs=1e-5), tag
