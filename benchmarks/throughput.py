@@ -5,6 +5,7 @@
     python benchmarks/throughput.py --suite mujoco  # ppo_continuous.py and ppo_kl_penalty.py on Hopper, about 5 minutes
     python benchmarks/throughput.py --suite atari   # ppo_atari.py on Breakout, about 5 minutes
     python benchmarks/throughput.py --suite humanoid  # ppo_continuous.py with the paper's Table 4, about 20 minutes
+    python benchmarks/throughput.py --suite roboschool  # roboschool_humanoid.py's envs alone beside Humanoid-v5's
 
 Every measurement runs in a fresh process, one at a time, and the cases are repeated in
 alternation (ours, peer, env, ours, peer, env, ...) so that a slow spell of the machine hits all of
@@ -25,6 +26,8 @@ compilation's cost.
   normalization (VecNormalize), once with torch's default threads and once with 1 thread; the
   iteration ends are its rollout ends;
 - env: the environment alone, stepped with random actions: the ceiling for any agent.
+A suite of envs alone (roboschool) has no script of ours and no peer: its cases are envs, each stepped alone with
+random actions as `env` is, and compared with the first.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.append(str(ROOT))  # for env ids of a module beside the scripts (roboschool_humanoid:...)
 from common import load_script, replace_between  # noqa: E402
 from results import commit, machine, versions  # noqa: E402
 from suites import TABLE4  # noqa: E402
@@ -84,6 +88,18 @@ SUITES = {
         "peers": ["sb3_ppo_humanoid", "sb3_ppo_humanoid_1thread"],
         "settings": "Table 4: 32 envs, T=512, K=15 epochs, minibatch 4,096, 64x64 tanh MLPs, log std annealed (SB3:"
         " fixed at -0.7), lr adapted to the KL (SB3: constant)",
+    },
+    # Issue 59: the paper's three humanoid tasks (roboschool_humanoid.py) are env-bound at 50M steps: each env alone,
+    # beside gymnasium's Humanoid-v5, reset when its episode ends.
+    "roboschool": {
+        "env_id": "Humanoid-v5",
+        "steps": 5000,
+        "ours": [],
+        "peers": [],
+        "envs": [
+            f"roboschool_humanoid:{task}-v0" for task in ("HumanoidForward", "HumanoidFlagrun", "HumanoidFlagrunHarder")
+        ],
+        "settings": "each env alone with random actions in [-1, 1] (Humanoid-v5's own action space: [-0.4, 0.4])",
     },
 }
 
@@ -280,6 +296,8 @@ def run_worker(case, env_id, steps, suite):
         sps = measure_sb3_ppo_mujoco(env_id, steps, threads=1)
     elif case == "env":
         sps = measure_env(env_id, steps)
+    elif case.startswith("env "):  # an env of an env suite, alone
+        sps = measure_env(case.split()[1], steps)
     else:
         raise ValueError(case)
     print(json.dumps({"sps": sps[0], "first_iteration_s": sps[1]}))
@@ -342,7 +360,7 @@ def measure_suite(name, steps, repeats):
     suite = SUITES[name]
     env_id = suite["env_id"]
     ours = [case for case in suite["ours"] if (ROOT / next(w for w in case.split() if w.endswith(".py"))).exists()]
-    cases = [*ours, *suite["peers"], "env"]
+    cases = [*ours, *suite["peers"], "env", *(f"env {env}" for env in suite.get("envs", []))]
     load_at_start = os.getloadavg()[0]
     samples, firsts = {case: [] for case in cases}, {case: [] for case in cases}
     total, done, start = len(cases) * repeats, 0, time.time()
@@ -359,6 +377,8 @@ def measure_suite(name, steps, repeats):
     first = {case: statistics.median(v) if None not in v else None for case, v in firsts.items()}
     peers, env = suite["peers"], median["env"]
     command = "python benchmarks/throughput.py " + " ".join(sys.argv[1:])
+    if "envs" in suite:
+        return env_table(name, suite, cases, samples, median, steps, repeats, load_at_start, command)
     lines = [
         f"## {name} ({env_id})",
         "",
@@ -406,12 +426,36 @@ def measure_suite(name, steps, repeats):
             if "flags" in suite
             else []
         ),
+        *provenance_lines(load_at_start, command),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def provenance_lines(load_at_start, command):
+    return [
         "- The other process sharing the machine during the run, if any, is not controlled:"
         f" compare ratios, not absolute figures (load average at the start: {load_at_start:.1f}).",
         f"- Command: `{command.strip()}`",
         f"- Commit: {commit(['*.py'], ' (with uncommitted changes)')}; date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
         f"- Versions: {versions(('torch', 'numpy', 'gymnasium', 'mujoco', 'ale-py', 'stable-baselines3'))}",
         f"- Machine: {machine()}",
+    ]
+
+
+def env_table(name, suite, cases, samples, median, steps, repeats, load_at_start, command):
+    """An env suite's table: each env alone, and its ratio to the suite's env_id."""
+    base = suite["env_id"]
+    lines = [f"## {name} (envs alone, beside {base})", "", f"| env | median steps/s | samples | ratio to {base} |"]
+    lines.append("|---|---|---|---|")
+    for case in cases:
+        label = base if case == "env" else case.split()[1]
+        row = f"| {label} | {median[case]:.0f} | {', '.join(f'{s:.0f}' for s in samples[case])}"
+        lines.append(f"{row} | {median[case] / median['env']:.2f}x |")
+    lines += [
+        "",
+        f"- Settings: {suite['settings']}; {steps:,} steps per measurement, reset when an episode ends,"
+        f" {repeats} measurements of each env in alternation, each in a fresh process; the median is shown.",
+        *provenance_lines(load_at_start, command),
     ]
     return "\n".join(lines) + "\n"
 
