@@ -14,8 +14,9 @@ from details import cited_details  # noqa: E402
 
 
 def test_readme_is_short():
-    # Under 260 (issue 55): the long generated blocks live in benchmarks/README.md and the suites' reports, a link away.
-    assert len(README.splitlines()) < 260
+    # At most 270 (issue 59, which adds the flagrun tasks; 260 before): the long generated blocks live in
+    # benchmarks/README.md and the suites' reports, a link away.
+    assert len(README.splitlines()) <= 270
 
 
 def test_every_detail_links_to_a_line_that_cites_it():

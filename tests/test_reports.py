@@ -697,3 +697,15 @@ def test_a_clone_of_one_commit_regenerates_the_rlhf_report_and_block_unchanged(t
     """
     proc = subprocess.run([sys.executable, "-c", check], cwd=clone, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize("t,p", [(2.306, 0.05), (3.355, 0.01), (1.860, 0.10)])
+def test_welchs_test_against_students_table(t, p):
+    """Two samples of 5 with equal variance 2.5, their means t standard errors apart: Welch's degrees of freedom are
+    2 (n - 1) = 8, and the two-sided p-value is the one a table of Student's t gives for df 8."""
+    from reports.stats import welch
+
+    base = [0.0, 1.0, 2.0, 3.0, 4.0]
+    t_stat, df, p_value = welch([x + t for x in base], base)
+    assert t_stat == pytest.approx(t) and df == pytest.approx(8.0)
+    assert p_value == pytest.approx(p, abs=0.0005)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from reports import scores
 from reports.base import MUJOCO_VERSIONS, SCORE_RULE, env_base, fmt, ordered_variants, suite_name
-from reports.stats import group, mean_return, mean_std
+from reports.stats import difference, group, mean_return, mean_std, welch
 from results import load_runs, random_score
 from suites import COLUMNS
 
@@ -47,9 +47,28 @@ def humanoid_table(runs, reference, variants, results):
             lines.append(
                 f"| {env} | {v} | {steps} | {fmt(*mean_std(last))} ({n}) | {fmt(*mean_std(whole))} ({n}) | {wall} |"
             )
+        lines += welch_line(by_env[env])
         rand = random_score(env, results)
         lines += ["", f"The random policy on {env}: {fmt(rand) if rand is not None else 'not measured'}."]
         for column, title, setting in COLUMNS["humanoid"]:
             ref = reference.get((column, env_base(env), setting))
             lines.append(f"- {title}: {fmt(ref[0], ref[1]) if ref else '–'}")
     return lines
+
+
+def welch_line(by_variant, variant="table4-2ranks", base="table4"):
+    """The same run in 2 processes against one (issue 53): Welch's t-test of their last-100 scores over seeds."""
+    if variant not in by_variant or base not in by_variant:
+        return []
+    scores, base_scores = [r.score for r in by_variant[variant]], [r.score for r in by_variant[base]]
+    test = welch(scores, base_scores)
+    if test is None:
+        return []
+    (d, se), (t, df, p) = difference(scores, base_scores), test
+    beyond = "beyond" if abs(d) > 2 * se else "within"
+    return [
+        "",
+        f"{variant} minus {base}, last 100 episodes: {d:+,.0f} ± {se:,.0f} (standard error; {beyond} 2 of them);"
+        f" Welch's t = {t:.2f} on {df:.1f} degrees of freedom, two-sided p = {p:.2f}"
+        f" ({len(scores)} and {len(base_scores)} seeds).",
+    ]
