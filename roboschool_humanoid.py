@@ -8,8 +8,7 @@ registers them with gymnasium. No script imports it: gymnasium's `module:id` for
     python ppo_continuous.py --env-id roboschool_humanoid:HumanoidFlagrun-v0
     torchrun --standalone --nproc-per-node 2 ppo_continuous.py --env-id roboschool_humanoid:HumanoidFlagrunHarder-v0
 
-The ids drop the "Roboschool" prefix, because the engine is not Roboschool's, and keep "-v0", because the rules are
-those of its v0 tasks (its July 2017 v1 tasks changed them).
+The ids drop "Roboschool", whose engine this is not, and keep "-v0": the rules of its v0 tasks (v1 changed them).
 
 The rules (each step is 4 physics steps of 0.0165/4 s, an episode 1,000 steps):
 - State, 44 numbers clipped to [-5, 5]: the torso's height above 0.8 m; sin and cos of the angle from the torso's
@@ -34,12 +33,13 @@ The rules (each step is 4 physics steps of 0.0165/4 s, an episode 1,000 steps):
   rises each step below 0.8 m and falls each step above).
 
 Where ours differs from Roboschool, judge the comparison with Figure 4 by these:
-- The engine: MuJoCo, not Bullet. Contacts, friction and the joints' springs and dampers act differently.
+- The engine: MuJoCo (its implicitfast integrator and Newton solver, as Bullet a semi-implicit Euler), not Bullet:
+  contacts, friction and the joints' springs and dampers act differently.
 - The body: gymnasium's humanoid.xml, not Roboschool's humanoid_symmetric.xml. Its hips' y bend to -110 degrees, not
   -120; its contacts between body parts have no friction (condim 1) and the floor's friction is 1, not 0.8.
 - A body's position is its frame's origin (MuJoCo's xpos), where Bullet's links may sit at their centre of mass.
 - Random numbers come from gymnasium's generator, so no episode is Roboschool's, draw for draw.
-The flag is a marker (it touches nothing), filmed with a camera that follows the body from behind and above.
+The flag is a marker (it touches nothing), filmed by a camera that follows the body from 5 m south and 5 m up.
 """
 
 import os
@@ -65,8 +65,7 @@ JOINTS_AT_LIMIT_COST = -0.1
 FOOT_COLLISION_COST = -1.0
 INITIAL_Z = 0.8  # the state's height is the torso's above this
 # Half the stadium of Roboschool's scene (105 x 50 m, scaled by 0.25), and half of that again: "more compact".
-FLAG_HALF_X = 105 * 0.25 * 0.5
-FLAG_HALF_Y = 50 * 0.25 * 0.5
+FLAG_HALF = np.array([105 * 0.25 * 0.5, 50 * 0.25 * 0.5])  # x, y
 FLAG_TIMEOUT = 200
 BODIES = "torso lwaist pelvis right_thigh right_shin right_foot left_thigh left_shin left_foot".split()
 BODIES += "right_upper_arm right_lower_arm left_upper_arm left_lower_arm".split()
@@ -90,9 +89,10 @@ def humanoid_model(cube, width, height):
         motor.gear[0] = POWER * power
         motor.ctrllimited = True
         motor.ctrlrange = [-1.0, 1.0]
-    camera = spec.camera("track")  # follows the body's centre of mass from 6 m to the side and 4 m up, looking at it
-    camera.pos = [0.0, -6.0, 4.0]
-    camera.alt.xyaxes = [1.0, 0.0, 0.0, 0.0, 0.555, 0.832]
+    camera = spec.camera("track")  # follows the body's centre of mass from 5 m to the side and 5 m up, wide: the flag
+    camera.pos = [0.0, -5.0, 5.0]  # in sight while it is within about 8 m
+    camera.alt.xyaxes = [1.0, 0.0, 0.0, 0.0, 0.707, 0.707]
+    camera.fovy = 65.0
     flag = spec.worldbody.add_body(name="flag", mocap=True)
     marker = dict(contype=0, conaffinity=0, rgba=[0.9, 0.2, 0.2, 1.0])
     flag.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, 0, 0, 1.5], size=[0.03, 0, 0], **marker)
@@ -235,7 +235,6 @@ class HumanoidForward(MujocoEnv):
         self.data.ctrl[:] = np.clip(a, -1.0, 1.0)  # torque = 0.41 x power x the clipped action (the motors' gear)
         mujoco.mj_step(self.model, self.data, nstep=FRAME_SKIP)
         mujoco.mj_kinematics(self.model, self.data)  # the bodies' positions after the last physics step
-        flags_reached = self.flags_reached
         self.flag_moved = False
         state = self.calc_state()
         alive = self.alive_bonus()
@@ -252,10 +251,8 @@ class HumanoidForward(MujocoEnv):
         self.frame += 1
         terminated = alive < 0 or not np.isfinite(state).all()
         info = {f"reward_{name}": float(value) for name, value in terms.items()}
-        info |= {"flags_reached": self.flags_reached, "flag_reached": self.flags_reached > flags_reached}
-        info |= {"flag_moved": self.flag_moved}
+        info |= {"flags_reached": self.flags_reached, "flag_moved": self.flag_moved, "cubes_thrown": self.cubes_thrown}
         info |= {"distance_to_target": self.walk_target_dist, "torso_z": self.body_xyz[2]}
-        info |= {"cubes_thrown": self.cubes_thrown}
         if self.render_mode == "human":
             self.render()
         return state, float(sum(terms.values())), bool(terminated), False, info
@@ -270,7 +267,7 @@ class HumanoidFlagrun(HumanoidForward):
         self.flag_reposition()
 
     def flag_reposition(self):
-        self.target = self.np_random.uniform([-FLAG_HALF_X, -FLAG_HALF_Y], [FLAG_HALF_X, FLAG_HALF_Y])
+        self.target = self.np_random.uniform(-FLAG_HALF, FLAG_HALF)
         self.data.mocap_pos[0, :2] = self.target
         self.flag_timeout = FLAG_TIMEOUT
 

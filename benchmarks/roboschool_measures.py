@@ -4,6 +4,12 @@ flag, and, for FlagrunHarder, falls, the cube's knock-downs, and the share of ti
     python benchmarks/roboschool_measures.py                            # each run of the suite at its 50M budget
     python benchmarks/roboschool_measures.py --total-timesteps 10027008 # the 10M pilots and seeds
     python benchmarks/roboschool_measures.py --checkpoint runs/x/checkpoint.pt   # any run's, printed only
+    python benchmarks/roboschool_measures.py --total-timesteps 10027008 --film  # and film each run
+
+With --film, each run's film goes to results/<suite folder>/video/<run>.mp4, with a frame of it (.png): the first of
+the measured episodes that shows what the task asks (a fall it gets up from, for FlagrunHarder; a flag reached, else a
+flag moved, for Flagrun; else its first episode), filmed from the start to its end, the frame 30 steps after that
+event (the middle of the episode if none), with the flag and the cube in sight of a camera that follows the body.
 
 Each run's checkpoint plays --episodes episodes (seeds 1, 2, ...) with its deterministic policy (the Gaussian's mean,
 as --eval-checkpoint plays it), and one row an episode goes to results/<suite folder>/measures/<run>.csv, which the
@@ -30,8 +36,8 @@ DT = 0.0165  # s a step
 FIELDS = "seed return length flags speed_to_flag started_down falls knockdowns cubes getups getup_steps".split()
 
 
-def play(checkpoint_path, episodes):
-    """One dict of FIELDS an episode of the checkpoint's deterministic policy, on its own env, seeds 1..episodes."""
+def policy(checkpoint_path):
+    """(env_id, act(obs)): the checkpoint's env and its deterministic policy on raw observations."""
     import gymnasium as gym
     import torch
 
@@ -40,6 +46,22 @@ def play(checkpoint_path, episodes):
     env = gym.make(train_args.env_id)
     agent = script.Agent(env.observation_space.shape[0], env.action_space.shape[0], norm_obs=train_args.norm_obs)
     agent.load_state_dict(checkpoint["agent"])
+    env.close()
+
+    def act(obs):
+        with torch.inference_mode():
+            action = agent.actor_mean(torch.as_tensor(agent.normalize_obs(obs[None])))[0].numpy()
+        return np.clip(action, -1.0, 1.0)
+
+    return train_args.env_id, act
+
+
+def play(checkpoint_path, episodes):
+    """One dict of FIELDS an episode of the checkpoint's deterministic policy, on its own env, seeds 1..episodes."""
+    import gymnasium as gym
+
+    env_id, act = policy(checkpoint_path)
+    env = gym.make(env_id)
     rows = []
     for seed in range(1, episodes + 1):
         obs, _ = env.reset(seed=seed)
@@ -53,9 +75,7 @@ def play(checkpoint_path, episodes):
         getup_steps = []
         cubes = 0
         for step in range(1, 10**6):
-            with torch.inference_mode():
-                action = agent.actor_mean(torch.as_tensor(agent.normalize_obs(obs[None])))[0].numpy()
-            obs, reward, terminated, truncated, info = env.step(np.clip(action, -1.0, 1.0))
+            obs, reward, terminated, truncated, info = env.step(act(obs))
             row["return"] += float(reward)
             if distance is not None and not info["flag_moved"]:
                 speeds.append((distance - info["distance_to_target"]) / DT)
@@ -79,6 +99,41 @@ def play(checkpoint_path, episodes):
         rows.append(row)
     env.close()
     return rows
+
+
+def film(checkpoint_path, rows, video):
+    """Film the first measured episode that shows the task's event (see the docstring); returns its seed."""
+    import os
+
+    import gymnasium as gym
+    import imageio.v3 as iio
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    env_id, act = policy(checkpoint_path)
+    harder = env_id.endswith("HumanoidFlagrunHarder-v0")
+    shows = [r for r in rows if (r["getups"] > r["started_down"] if harder else r["flags"] > 0)]
+    seed = (shows or rows)[0]["seed"]
+    env = gym.make(env_id, render_mode="rgb_array", width=512, height=384)
+    obs, _ = env.reset(seed=seed)
+    frames, event, down, fell = [env.render()], None, env.unwrapped.data.qpos[2] < DOWN, False
+    for step in range(1, 10**6):
+        obs, _, terminated, truncated, info = env.step(act(obs))
+        frames.append(env.render())
+        if harder:  # the first get-up after a fall (not from a start on the ground)
+            fell = fell or (not down and info["torso_z"] < DOWN)
+            if fell and down and info["torso_z"] >= DOWN and event is None:
+                event = step
+            down = info["torso_z"] < DOWN
+        elif event is None and (info["flags_reached"] or (info["flag_moved"] and not shows)):
+            event = step
+        if terminated or truncated:
+            break
+    env.close()
+    video.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(video, np.stack(frames), fps=30, codec="libx264")
+    at = min(len(frames) - 1, event + 30) if event is not None else len(frames) // 2
+    iio.imwrite(video.with_suffix(".png"), frames[at])
+    return seed
 
 
 def write(path, rows):
@@ -106,6 +161,7 @@ def main():
     parser.add_argument("--total-timesteps", type=int, help="the suite's budget whose runs to measure (default: 50M)")
     parser.add_argument("--checkpoint", type=Path, help="measure this checkpoint only, and print it")
     parser.add_argument("--episodes", type=int, default=30)
+    parser.add_argument("--film", action="store_true", help="also film each run (results/<folder>/video/)")
     args = parser.parse_args()
     if args.checkpoint:
         print(summary(play(args.checkpoint, args.episodes)))
@@ -115,6 +171,9 @@ def main():
             rows = play(job.checkpoint, args.episodes)
             write(job.results_dir / "measures" / f"{job.name}.csv", rows)
             print(f"{job.name}: {summary(rows)}", flush=True)
+            if args.film:
+                seed = film(job.checkpoint, rows, job.results_dir / "video" / f"{job.name}.mp4")
+                print(f"  filmed episode seed {seed}: {job.results_dir / 'video' / job.name}.mp4", flush=True)
 
 
 if __name__ == "__main__":
