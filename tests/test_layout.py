@@ -192,13 +192,15 @@ REACHED = {
     ("ppo_rlhf.py", "lines"): 845,  # DPO (issue 47), the hack's metrics; run dirs (55); IPO, one-prompt pairs (54);
     # KTO and reward-model ensembles (issue 60, whose budget was 815)
     # torchrun (issue 53: the section MANY PROCESSES, the normalizers' merge, one record, the ranks' stops and faults),
-    # run dirs made atomically and filming checked before the run (issue 55); torch._dynamo imported before the group
+    # run dirs made atomically and filming checked before the run (issue 55); torch._dynamo imported before the group;
+    # issue 59, no line: a dash for the return before the first episode ends (2 characters) and, in the MuJoCo
+    # scripts, a module:id whose module is not found refused in one line (15)
     ("ppo_continuous.py", "lines"): 754,
-    ("ppo_continuous.py", "code_chars"): 23_292,
+    ("ppo_continuous.py", "code_chars"): 23_309,
     ("ppo_atari.py", "lines"): 703,
-    ("ppo_atari.py", "code_chars"): 21_937,
+    ("ppo_atari.py", "code_chars"): 21_939,
     ("ppo_kl_penalty.py", "lines"): 768,
-    ("ppo_kl_penalty.py", "code_chars"): 23_654,
+    ("ppo_kl_penalty.py", "code_chars"): 23_671,
 }
 NOT_MET = set(REACHED)
 CASES = [

@@ -307,30 +307,40 @@ def write_report(folder, runs, reference, results):
 
 def pilot_lines(folder):
     """For the suite's own folder: what the pilot runs at other budgets (folders <suite>_<budget>, seeds outside the
-    suite's) showed, from which the length was chosen."""
+    suite's) showed: those from which the length was chosen, and those of the ensembles, from which the second
+    ensemble arm's aggregate was chosen (the higher gold peak, a rule fixed before the pilot ran)."""
     folder = Path(folder)
-    lines = []
+    lines = {"length": [], "ensemble": []}
     for other in sorted(folder.parent.glob(f"{SUITE}_*")) if folder.name == SUITE else []:
         for (variant, seed), run in sorted(read_rlhf_series(other).items()):
             gold, kl = tenths(run, "gold_score", width=WINDOW), tenths(run, "kl", width=WINDOW)
             i = max(range(len(gold)), key=gold.__getitem__)
             link = f"[{other.name}](../{other.name}/report.md)"
-            lines.append(
+            lines["ensemble" if ensemble_of(variant) > 1 else "length"].append(
                 f"- Pilot `{variant}`, seed {seed}, {len(run) * 64:,} responses ({link}):"
                 f" gold {gold[0]:.1f} in its first window of {WINDOW * 64:,} responses, {gold[i]:.1f} at its peak in"
                 f" window {i + 1} (KL {kl[i]:.1f}), {gold[-1]:.1f} at the end (KL {kl[-1]:.1f})."
             )
-    if lines:
-        lines = [
+    out = []
+    if lines["length"]:
+        out += [
             f"The length, {SUITES[SUITE].total_timesteps:,} responses, is that of the pilot runs below, on a seed"
             " outside the suite's, chosen from them: where the rlhf suite's β = 0 seeds had not all fallen by"
             f" {SUITES['rlhf'].total_timesteps:,} responses, the pilots peaked within their first tenth and fell long"
             " before their end, so a peak several times later would still show.",
             "",
-            *lines,
+            *lines["length"],
             "",
         ]
-    return lines
+    if lines["ensemble"]:
+        out += [
+            "The second ensemble arm's aggregate, min or uwo, is the one whose pilot below peaked higher in gold (a"
+            " rule fixed before they ran); the other ran only as a pilot.",
+            "",
+            *lines["ensemble"],
+            "",
+        ]
+    return out
 
 
 def flags_of(variant, suite=SUITE):
