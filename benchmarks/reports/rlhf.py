@@ -210,8 +210,8 @@ def rlhf_block(results=RESULTS):
     lines.append(
         "- **Over-optimization** (Gao et al. 2022). Seeds whose gold score, per tenth of training, rose to its peak and"
         " fell from it, each by more than twice the run's own standard error, while the KL to π_SFT grew past its"
-        " value there and the RM score ended at least as high (for DPO, which never sees the RM, all but the last),"
-        " with the hack that the last tenth shows most: " + ", ".join(overoptimized) + f". {BLIND_SPOT}"
+        " value there and the RM score ended at least as high (for DPO and KTO, which never see the RM, all but the"
+        " last), with the hack that the last tenth shows most: " + ", ".join(overoptimized) + f". {BLIND_SPOT}"
     )
     best = read_best_of_n(folder)
     if best:

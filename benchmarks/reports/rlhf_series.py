@@ -77,9 +77,9 @@ def falls(series, direct=(), width=None):
     """{(variant, seed): text} for each run over-optimized (Gao et al. 2022). Its gold score, per tenth of training (or
     per `width` iterations), rose from the first to its peak and fell from the peak to the last, each by more than
     twice the standard error of the difference (the run's own noise); its KL to pi_SFT ended above its value at the
-    peak; and its RM score ended at least as high as there, but for a variant in `direct` (DPO), which never sees the
-    RM: Rafailov et al. (2024) find that direct methods over-optimize too. The text names the hack by the last
-    window's shares of spam and garbled text."""
+    peak; and its RM score ended at least as high as there, but for a variant in `direct` (DPO, KTO), which never
+    sees the RM: Rafailov et al. (2024) find that direct methods over-optimize too. The text names the hack by the
+    last window's shares of spam and garbled text."""
     out = {}
     for key, run in sorted(series.items()):
         (gold, error) = tenths(run, "gold_score", spread=True, width=width)
