@@ -78,8 +78,8 @@ def humanoid_model(cube, width, height):
 
     spec = mujoco.MjSpec.from_file(os.path.join(os.path.dirname(gymnasium.envs.mujoco.__file__), "assets/humanoid.xml"))
     spec.option.timestep = DT / FRAME_SKIP
-    # MuJoCo's implicitfast integrator and its default Newton solver, where gymnasium's file asks for RK4 and PGS: Bullet
-    # too steps with a semi-implicit Euler, and Newton solves the same contact problem in fewer iterations.
+    # MuJoCo's implicitfast integrator and its default Newton solver, where gymnasium's file asks for RK4 and PGS:
+    # Bullet too steps with a semi-implicit Euler, and Newton solves the same contact problem in fewer iterations.
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
     for actuator in list(spec.actuators):
