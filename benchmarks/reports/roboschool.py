@@ -24,7 +24,8 @@ def tables(folder, runs, reference, results, level="##"):
     """The scores beside Figure 4's, then the measures of the trained policies where they have been made."""
     by_env = group(runs)
     lines = [
-        "| env | setting | steps | last 100 (n) | all training (n) | wall time per run | paper, Fig. 4 (approx.) |",
+        "| env | setting | steps | last 100 (n) | all training (n) | wall time per run | paper, Fig. 4, near 100M"
+        " (approx.) |",
         "|---|---|---|---|---|---|---|",
     ]
     for env in sorted(by_env):
