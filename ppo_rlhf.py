@@ -525,7 +525,8 @@ def dpo_pairs(reference, args, device):
     tokens, mask, chosen, rejected, n_train = preference_pairs(reference, args, device)
     pairs = {"kept": torch.arange(n_train, device=device) < args.kto_desirable_share * n_train}
     sides = [("chosen", chosen[:n_train]), ("rejected", rejected[:n_train])]
-    for side, rows in sides + [("kl", rejected[:n_train].roll(1))] * args.kto:
+    sides += [("kl", rejected[:n_train].roll(1))] if args.kto else []
+    for side, rows in sides:
         pairs |= {f"{side}_tokens": tokens[rows], f"{side}_mask": mask[rows]}
         pairs[f"{side}_tokens"][:, :PROMPT_LENGTH] = tokens[chosen[:n_train], :PROMPT_LENGTH]  # the pair's prompt
         logprobs = sequence_logprobs(reference, pairs[f"{side}_tokens"], mask[rows], args.temperature)
@@ -540,7 +541,7 @@ def dpo_update(agent, optimizer, mb, args):
     response judged alone against KTO's reference point z0, the mismatched pairs' mean implied reward (detached and
     clamped at 0, as TRL's KTOTrainer estimates beta KL), the chosen ones desirable and the rejected ones not."""
     implicit = {}
-    for side in ("chosen", "rejected", *["kl"] * args.kto):
+    for side in ("chosen", "rejected", "kl") if args.kto else ("chosen", "rejected"):
         with torch.set_grad_enabled(side != "kl"):
             logprobs = sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"], args.temperature)
         implicit[side] = args.kl_coef * (logprobs - mb[f"{side}_ref"])
