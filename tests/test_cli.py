@@ -2,6 +2,7 @@
 resume, evaluation, video and bad input."""
 
 import dataclasses
+import re
 import shutil
 import signal
 import subprocess
@@ -435,3 +436,14 @@ def test_filming_with_the_tracking_camera_leaves_no_other_env_open(name, tmp_pat
     filmed = load_script(name).make_env("Hopper-v5", capture_video=True, video_dir=str(tmp_path))
     assert len(made) == 2 and closed == [made[0]], "the first env is closed, the filmed one is not"
     filmed.close()
+
+
+@pytest.mark.parametrize("script", ["ppo_continuous.py", "ppo_kl_penalty.py"])
+def test_the_progress_line_prints_a_dash_until_an_episode_ends(script, tmp_path):
+    """Issue 59: Pendulum's episodes last 200 steps, so after the first 64 no episode has ended: the first progress
+    line says `return -`, not nan; the last, after 256 steps, a number."""
+    flags = ["--env-id", "Pendulum-v1", "--num-steps", "64", "--minibatch-size", "64", "--update-epochs", "1"]
+    out = run_cli(script, *flags, "--total-timesteps", "256", "--run-dir", "run", cwd=tmp_path).stdout
+    returns = re.findall(r"\| return (\S+) \|", out)
+    assert returns[0] == "-" and "nan" not in out
+    assert float(returns[-1]) < 0  # Pendulum pays only costs
