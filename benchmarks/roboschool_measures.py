@@ -28,11 +28,12 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT))
 from common import load_script  # noqa: E402
+from roboschool_humanoid import DT  # noqa: E402  (seconds a step)
 from run import make_grid  # noqa: E402
 
 DOWN = 0.8  # m: FlagrunHarder's "on the ground"
-DT = 0.0165  # s a step
 FIELDS = "seed return length flags speed_to_flag started_down falls knockdowns cubes getups getup_steps".split()
 
 
@@ -115,7 +116,10 @@ def film(checkpoint_path, rows, video):
     seed = (shows or rows)[0]["seed"]
     env = gym.make(env_id, render_mode="rgb_array", width=512, height=384)
     obs, _ = env.reset(seed=seed)
-    frames, event, down, fell = [env.render()], None, env.unwrapped.data.qpos[2] < DOWN, False
+    frames = [env.render()]
+    event = None
+    down = env.unwrapped.data.qpos[2] < DOWN
+    fell = False
     for step in range(1, 10**6):
         obs, _, terminated, truncated, info = env.step(act(obs))
         frames.append(env.render())

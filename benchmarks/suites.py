@@ -201,7 +201,7 @@ SUITES = {
         env_flag=None,
         budget_flag="--total-episodes",
         report="overoptimization",
-        # the pilot chose min: it peaked at gold 8.79, uwo at 8.47 (seed 4, 51,200 responses); uwo ran only there
+        # the pilot chose min by the rule above (rlhf-long_51200/report.md has both peaks); uwo ran only there
         only={"ens4-uwo": (["reviews"], [4])},
     ),
     # The paper's Figure 3 (issue 41): the algorithms PPO was compared with, on the mujoco suite's tasks and budget.

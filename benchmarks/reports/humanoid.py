@@ -39,14 +39,7 @@ def humanoid_table(runs, reference, variants, results):
     ]
     for env in sorted(by_env):
         for v in [v for v in variants if v in by_env[env]]:
-            last = [r.score for r in by_env[env][v]]
-            whole = [mean_return(r.rows) for r in by_env[env][v]]
-            steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in by_env[env][v]}))
-            n = len(last)
-            wall = ", ".join(f"{float(r.meta['wall_time_s']) / 60:.0f} min" for r in by_env[env][v])
-            lines.append(
-                f"| {env} | {v} | {steps} | {fmt(*mean_std(last))} ({n}) | {fmt(*mean_std(whole))} ({n}) | {wall} |"
-            )
+            lines.append("| " + " | ".join([env, v, *score_cells(by_env[env][v])]) + " |")
         lines += welch_line(by_env[env])
         rand = random_score(env, results)
         lines += ["", f"The random policy on {env}: {fmt(rand) if rand is not None else 'not measured'}."]
@@ -54,6 +47,16 @@ def humanoid_table(runs, reference, variants, results):
             ref = reference.get((column, env_base(env), setting))
             lines.append(f"- {title}: {fmt(ref[0], ref[1]) if ref else '–'}")
     return lines
+
+
+def score_cells(runs):
+    """A setting's cells: its runs' steps, the mean ± std over seeds of the last 100 episodes and of every episode of
+    training, and each run's wall time."""
+    last = [r.score for r in runs]
+    whole = [mean_return(r.rows) for r in runs]
+    steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in runs}))
+    wall = ", ".join(f"{float(r.meta['wall_time_s']) / 60:.0f} min" for r in runs)
+    return [steps, f"{fmt(*mean_std(last))} ({len(last)})", f"{fmt(*mean_std(whole))} ({len(whole)})", wall]
 
 
 def welch_line(by_variant, variant="table4-2ranks", base="table4"):
@@ -64,7 +67,8 @@ def welch_line(by_variant, variant="table4-2ranks", base="table4"):
     test = welch(scores, base_scores)
     if test is None:
         return []
-    (d, se), (t, df, p) = difference(scores, base_scores), test
+    d, se = difference(scores, base_scores)
+    t, df, p = test
     beyond = "beyond" if abs(d) > 2 * se else "within"
     return [
         "",

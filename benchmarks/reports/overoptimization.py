@@ -5,8 +5,7 @@ claims the issues ask about, answered from those numbers: (a) does a weaker RM p
 with a KL penalty lie on the unpenalized run's curve, stopping earlier, (c) does PPO fall below best-of-N at equal d,
 (d) does an ensemble of reward models peak later or higher than one, and (e) when the policy falls, do all members
 overrate what it writes (herding), or does their disagreement rise first. The figure has a panel each for the KL
-penalty, the group baselines, DPO, IPO and KTO (the rlhf suite's arms), the RM size and the ensembles; a second
-figure follows the ensembles' members."""
+penalty, the group baselines, DPO, IPO and KTO (the rlhf suite's arms), the RM size and the ensembles."""
 
 from __future__ import annotations
 
@@ -14,7 +13,7 @@ import math
 from pathlib import Path
 
 from reports.base import fmt, ordered_variants, provenance, save_figure
-from reports.rlhf_series import direct_variants, falls, fit_gao, plot_rlhf_seeds, tenths
+from reports.rlhf_series import direct_variants, falls, fit_gao, plot_rlhf_seeds, tenths, window_means
 from reports.stats import mean_std
 from results import (
     BEST_OF_N,
@@ -421,15 +420,6 @@ def claims(series, sft_of, fits, sizes, best):
     return lines
 
 
-def window_means(values):
-    """The mean of `values`, one per iteration, over each window of WINDOW iterations, counted from the end as tenths()
-    counts them."""
-    import numpy as np
-
-    first = len(values) % WINDOW
-    return [float(np.mean(values[i : i + WINDOW])) for i in range(first, len(values), WINDOW)]
-
-
 def single_rm_run(series, seed, pairs):
     """The key of the seed's β = 0 run with one reward model of `pairs` pairs, or None."""
     keys = [k for k in series if k[1] == seed and beta_of(k[0]) == 0 and rm_pairs(k[0]) == pairs]
@@ -464,15 +454,17 @@ def ensemble_claims(series, sft_of, ensemble):
             + "; ".join(parts)
             + "."
         )
-    rows, herded, first = [], 0, 0
+    rows = []
+    herded = 0
+    first = 0
     fell = falls(series, direct_variants(), WINDOW)
     for key in [k for k in keys if k in fell and k in ensemble]:
         gold = tenths(series[key], "gold_score", width=WINDOW)
         peak = int(np.argmax(gold))
         members = ensemble[key][:, 1 + len(ENSEMBLE_STATS) :]
-        windows = [window_means(member) for member in members.T]
+        windows = [window_means(member, WINDOW) for member in members.T]
         held = sum(w[-1] >= w[peak] for w in windows)
-        spread = window_means(ensemble[key][:, 1 + ENSEMBLE_STATS.index("rm_disagreement")])
+        spread = window_means(ensemble[key][:, 1 + ENSEMBLE_STATS.index("rm_disagreement")], WINDOW)
         rose_first = spread[peak] > 2 * spread[0]
         herded += held == len(windows)
         first += rose_first

@@ -55,10 +55,15 @@ def tenths(run, name, spread=False, width=None):
     """The mean of a run's rlhf/<name> over each tenth of its iterations (or each `width` of them), in order, counted
     from the end: the last is the mean of the last tenth, as in report.md. With `spread`, also each mean's standard
     error, from the spread of its iterations."""
+    column = run[:, 1 + RLHF_STATS.index(name)]
+    return window_means(column, width or max(1, len(column) // 10), spread)
+
+
+def window_means(column, width, spread=False):
+    """The mean of a per-iteration column over each window of `width` iterations, counted from the end (tenths()
+    reads a run's column so), with each mean's standard error if `spread`."""
     import numpy as np
 
-    column = run[:, 1 + RLHF_STATS.index(name)]
-    width = width or max(1, len(column) // 10)
     first = len(column) % width
     with warnings.catch_warnings():  # an iteration with no pair of different gold has no RM accuracy: nan
         warnings.simplefilter("ignore", RuntimeWarning)

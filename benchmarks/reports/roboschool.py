@@ -9,7 +9,8 @@ from pathlib import Path
 
 from reports import scores
 from reports.base import env_base, fmt, ordered_variants, suite_name
-from reports.stats import group, mean_return, mean_std
+from reports.humanoid import score_cells
+from reports.stats import group
 from suites import COLUMNS
 
 ORDER = 2  # beside the humanoid suite
@@ -32,17 +33,9 @@ def tables(folder, runs, reference, results, level="##"):
         for v in ordered_variants(suite_name(folder), runs):
             if v not in by_env[env]:
                 continue
-            last = [r.score for r in by_env[env][v]]
-            whole = [mean_return(r.rows) for r in by_env[env][v]]
-            steps = ", ".join(f"{s:,}" for s in sorted({int(r.meta["global_step"]) for r in by_env[env][v]}))
-            wall = ", ".join(f"{float(r.meta['wall_time_s']) / 60:.0f} min" for r in by_env[env][v])
             ref = [reference.get((column, env_base(env), v)) for column, _, _ in COLUMNS["roboschool"]]
             paper = "; ".join(fmt(r[0]) for r in ref if r) or "–"
-            n = len(last)
-            lines.append(
-                f"| {env} | {v} | {steps} | {fmt(*mean_std(last))} ({n}) | {fmt(*mean_std(whole))} ({n}) | {wall}"
-                f" | {paper} |"
-            )
+            lines.append("| " + " | ".join([env, v, *score_cells(by_env[env][v]), paper]) + " |")
     return lines + measures_table(folder, level)
 
 
