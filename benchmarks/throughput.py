@@ -315,7 +315,8 @@ def measure(case, env_id, steps, suite):
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     if proc.returncode != 0:
         raise SystemExit(f"{case} failed:\n{proc.stderr[-3000:]}")
-    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    # The worker's one JSON line; under torchrun the other ranks' own lines may come after it.
+    result = json.loads(next(line for line in reversed(proc.stdout.splitlines()) if line.startswith("{")))
     return result["sps"], result["first_iteration_s"]
 
 
