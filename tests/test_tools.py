@@ -80,6 +80,17 @@ def test_throughput_humanoid_case_measures_ours_sb3_and_the_envs_with_table4(cap
     assert sps > 0 and first > 0
 
 
+def test_throughput_reads_the_workers_result_when_another_rank_prints_after_it(monkeypatch):
+    import throughput
+
+    # Under torchrun every rank's stdout is one pipe: rank 1's own last line may come after rank 0's result.
+    stdout = '{"sps": 5.0, "first_iteration_s": 1.0}\nsaved /tmp/rank1/checkpoint.pt\n'
+    done = subprocess.CompletedProcess([], 0, stdout=stdout, stderr="")
+    monkeypatch.setattr(throughput.subprocess, "run", lambda *args, **kwargs: done)
+    case = "torchrun --nproc-per-node 2 ppo_continuous.py"
+    assert throughput.measure(case, "Humanoid-v5", 768, "humanoid") == (5.0, 1.0)
+
+
 def test_best_of_n_keeps_the_rm_favourite_of_n_with_its_analytic_kl(tmp_path):
     import best_of_n
 
