@@ -164,9 +164,11 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--total-timesteps", type=int, help="the suite's budget whose runs to measure (default: 50M)")
     parser.add_argument("--checkpoint", type=Path, help="measure this checkpoint only, and print it")
-    parser.add_argument("--episodes", type=int, default=30)
+    parser.add_argument("--episodes", type=int, default=30, help="deterministic episodes per run (env seeds 1, 2, ...)")
     parser.add_argument("--film", action="store_true", help="also film each run (results/<folder>/video/)")
     args = parser.parse_args()
+    if args.episodes <= 0 or (args.total_timesteps is not None and args.total_timesteps <= 0):
+        parser.error("--episodes and --total-timesteps must be positive")
     if args.checkpoint:
         print(summary(play(args.checkpoint, args.episodes)))
         return
