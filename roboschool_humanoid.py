@@ -82,6 +82,8 @@ def humanoid_model(cube, width, height):
     # Bullet too steps with a semi-implicit Euler, and Newton solves the same contact problem in fewer iterations.
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
+    spec.geom("floor").size[:2] *= 10  # the floor drawn 400 m wide, not 40 (a forward walk goes further), with the
+    spec.material("MatPlane").texrepeat *= 10  # same squares: a plane's size is only how much of it is drawn
     for actuator in list(spec.actuators):
         spec.delete(actuator)
     for joint, power in MOTORS:
@@ -139,8 +141,7 @@ class HumanoidForward(MujocoEnv):
     electricity_cost = ELECTRICITY_COST
 
     def __init__(self, render_mode=None, width=480, height=480, camera_name=None, camera_id=None):
-        if camera_name is None and camera_id is None:
-            camera_name = "track"
+        camera_name = "track" if camera_name is None and camera_id is None else camera_name
         space = gym.spaces.Box(-5.0, 5.0, (44,), np.float32)
         super().__init__("humanoid.xml", FRAME_SKIP, space, render_mode, width, height, camera_id, camera_name)
         model = self.model
@@ -294,8 +295,7 @@ class HumanoidFlagrunHarder(HumanoidFlagrun):
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
         cube = self.model.joint(self.model.body("cube").jntadr[0])
-        self.cube_qpos = cube.qposadr[0]
-        self.cube_qvel = cube.dofadr[0]
+        self.cube_qpos, self.cube_qvel = cube.qposadr[0], cube.dofadr[0]
 
     def task_reset(self):
         super().task_reset()
