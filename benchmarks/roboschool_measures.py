@@ -153,10 +153,11 @@ def summary(rows):
     mean = {key: np.mean([float(r[key]) for r in rows if r[key] != ""] or [np.nan]) for key in FIELDS[1:]}
     downs = sum(r["falls"] + r["started_down"] for r in rows)
     share = f"{sum(r['getups'] for r in rows)}/{downs}" if downs else "-"
+    steps_up = f"{mean['getup_steps']:.0f}" if np.isfinite(mean["getup_steps"]) else "-"
     return (
         f"return {mean['return']:.0f}, {mean['length']:.0f} steps, {mean['flags']:.1f} flags, "
         f"{mean['speed_to_flag']:.2f} m/s toward the flag, {mean['falls']:.1f} falls "
-        f"({mean['knockdowns']:.1f} knock-downs), got up {share} times, in {mean['getup_steps']:.0f} steps"
+        f"({mean['knockdowns']:.1f} knock-downs), got up {share} times, in {steps_up} steps"
     )
 
 

@@ -62,8 +62,8 @@ def measures_table(folder, level):
         " throw; got up counts the times it rose from the ground (from a fall or a start lying down), and the steps it"
         " took on average. Means over episodes.",
         "",
-        "| run | steps an episode | flags reached an episode | speed toward the flag (m/s) | falls (knock-downs)"
-        " an episode | got up (times down) | steps to get up |",
+        "| run | steps an episode | flags reached an episode | speed toward the flag or target (m/s)"
+        " | falls (knock-downs) an episode | got up (times down) | steps to get up |",
         "|---|---|---|---|---|---|---|",
     ]
     for name, rows in measures.items():
