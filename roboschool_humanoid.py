@@ -82,8 +82,8 @@ def humanoid_model(cube, width, height):
     # Bullet too steps with a semi-implicit Euler, and Newton solves the same contact problem in fewer iterations.
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
-    spec.geom("floor").size[:2] *= 10  # the floor drawn 400 m wide, not 40 (a forward walk goes further), with the
-    spec.material("MatPlane").texrepeat *= 10  # same squares: a plane's size is only how much of it is drawn
+    spec.geom("floor").size[:2] *= 10  # drawn 400 m wide, not 40: a 1,000-step forward walk goes further
+    spec.material("MatPlane").texrepeat *= 10  # the same squares; a plane's size changes only what is drawn
     for actuator in list(spec.actuators):
         spec.delete(actuator)
     for joint, power in MOTORS:
