@@ -524,6 +524,30 @@ def test_humanoid_report_has_both_metrics_the_published_figures_and_the_video(tm
     assert (folder / "curves" / "Humanoid-v5.png").exists()
 
 
+def test_roboschool_report_and_readme_give_scores_beside_figure_4_and_what_the_policies_do(tmp_path):
+    """Issue 59: the report's scores beside Figure 4's end points and its measures table; README.md's short table
+    with the flags reached and the get-ups, summed over the runs' episodes."""
+    import roboschool_measures
+
+    results = tmp_path / "results"
+    folder = results / "roboschool"
+    fake_run(folder, "HumanoidFlagrunHarder-v0", "table4-128", 1, 1000.0)
+    fake_run(folder, "HumanoidFlagrunHarder-v0", "table4-128", 2, 3000.0)
+    zero = dict.fromkeys(roboschool_measures.FIELDS, 0)
+    for seed, episodes in [(1, [dict(flags=1, falls=2, getups=1, getup_steps=40)]), (2, [dict(started_down=1)] * 3)]:
+        rows = [zero | {"seed": i + 1, "length": 100, "getup_steps": ""} | e for i, e in enumerate(episodes)]
+        roboschool_measures.write(folder / "measures" / f"HumanoidFlagrunHarder-v0__table4-128__seed{seed}.csv", rows)
+    text = report.report(folder, results=results)
+    # last 100: 1,000 and 3,000; all training: (50 x -10,000 + 100 x score) / 150 = -2,666.7 and -1,333.3
+    row = "| HumanoidFlagrunHarder-v0 | table4-128 | 100,000 | 2,000 ± 1,414 (2) | -2,000 ± 943 (2) | 1 min, 1 min |"
+    assert row + " 3,000 |" in text
+    assert "| HumanoidFlagrunHarder-v0, table4-128, seed1 | 100 | 1.00 | 0.00 | 2.00 (0.00) | 1 (2) | 40 |" in text
+    assert "| HumanoidFlagrunHarder-v0, table4-128, seed2 | 100 | 0.00 | 0.00 | 0.00 (0.00) | 0 (3) | – |" in text
+    # README.md: 4 episodes, 1 flag; 1 get-up of 2 falls and 3 starts on the ground
+    short = report.readme_block(results=results)
+    assert "| HumanoidFlagrunHarder-v0 | table4-128 | 100,000 | 2,000 ± 1,414 (2) | 3,000 | 0.25 | 1 (5) |" in short
+
+
 def test_the_readmes_example_suite_is_one_entry_and_one_module(tmp_path, monkeypatch):
     """benchmarks/README.md's "Adding a suite": its entry of SUITES and its module of reports/ are all that run.py and
     report.py need to run the suite and write its report and README lines."""

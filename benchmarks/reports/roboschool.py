@@ -21,22 +21,50 @@ RULE = (
 )
 
 
+def paper(env, variant, reference):
+    """Figure 4's rough end point for the task, where issue 59 read one."""
+    refs = [reference.get((column, env_base(env), variant)) for column, _, _ in COLUMNS["roboschool"]]
+    return "; ".join(fmt(r[0]) for r in refs if r) or "–"
+
+
+def settings(folder, runs):
+    """(env, variant, its runs), in the report's order."""
+    by_env = group(runs)
+    for env in sorted(by_env):
+        for v in ordered_variants(suite_name(folder), runs):
+            if v in by_env[env]:
+                yield env, v, by_env[env][v]
+
+
 def tables(folder, runs, reference, results, level="##"):
     """The scores beside Figure 4's, then the measures of the trained policies where they have been made."""
-    by_env = group(runs)
     lines = [
         "| env | setting | steps | last 100 (n) | all training (n) | wall time per run | paper, Fig. 4, near 100M"
         " (approx.) |",
         "|---|---|---|---|---|---|---|",
     ]
-    for env in sorted(by_env):
-        for v in ordered_variants(suite_name(folder), runs):
-            if v not in by_env[env]:
-                continue
-            ref = [reference.get((column, env_base(env), v)) for column, _, _ in COLUMNS["roboschool"]]
-            paper = "; ".join(fmt(r[0]) for r in ref if r) or "–"
-            lines.append("| " + " | ".join([env, v, *score_cells(by_env[env][v]), paper]) + " |")
+    for env, v, setting_runs in settings(folder, runs):
+        lines.append("| " + " | ".join([env, v, *score_cells(setting_runs), paper(env, v, reference)]) + " |")
     return lines + measures_table(folder, level)
+
+
+def summary(folder, runs, reference, results):
+    """README.md's short table: each task's score beside Figure 4's, and what its trained policy does (the report has
+    the rest)."""
+    measures = read_measures(folder)
+    lines = [
+        "| env | setting | steps | last 100 (n) | paper, Fig. 4, near 100M (approx.) | flags reached an episode"
+        " | got up (times down) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for env, v, setting_runs in settings(folder, runs):
+        rows = [row for r in setting_runs for row in measures.get(f"{r.env_id}__{r.variant}__seed{r.seed}", [])]
+        flags = f"{sum(float(row['flags']) for row in rows) / len(rows):.2f}" if rows else "–"
+        downs = sum(int(row["falls"]) + int(row["started_down"]) for row in rows)
+        up = f"{sum(int(row['getups']) for row in rows)} ({downs})" if rows else "–"
+        cells = [env, v, *score_cells(setting_runs)[:2], paper(env, v, reference), flags, up]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def read_measures(folder):
@@ -92,4 +120,4 @@ def readme_lines(folder, results, reference, full):
     """The suite's lines in a README's Results block (scores.readme_lines)."""
     from results import load_runs
 
-    return scores.readme_lines(folder, load_runs(folder), results, reference, full, tables)
+    return scores.readme_lines(folder, load_runs(folder), results, reference, full, tables, summary)
