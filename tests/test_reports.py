@@ -525,8 +525,8 @@ def test_humanoid_report_has_both_metrics_the_published_figures_and_the_video(tm
 
 
 def test_roboschool_report_and_readme_give_scores_beside_figure_4_and_what_the_policies_do(tmp_path):
-    """Issue 59: the report's scores beside Figure 4's end points and its measures table; README.md's short table
-    with the flags reached and the get-ups, summed over the runs' episodes."""
+    """Issue 59: the report's scores beside Figure 4's end points and its measures table; README.md's line of words
+    with the flags reached and the get-ups, over the runs' episodes."""
     import roboschool_measures
 
     results = tmp_path / "results"
@@ -543,9 +543,13 @@ def test_roboschool_report_and_readme_give_scores_beside_figure_4_and_what_the_p
     assert row + " 3,000 |" in text
     assert "| HumanoidFlagrunHarder-v0, table4-128, seed1 | 100 | 1.00 | 0.00 | 2.00 (0.00) | 1 (2) | 40 |" in text
     assert "| HumanoidFlagrunHarder-v0, table4-128, seed2 | 100 | 0.00 | 0.00 | 0.00 (0.00) | 0 (3) | – |" in text
-    # README.md: 4 episodes, 1 flag; 1 get-up of 2 falls and 3 starts on the ground
+    # README.md, a line of words: over 4 episodes, 1 flag; 1 get-up of 2 falls and 3 starts on the ground
     short = report.readme_block(results=results)
-    assert "| HumanoidFlagrunHarder-v0 | table4-128 | 100,000 | 2,000 ± 1,414 (2) | 3,000 | 0.25 | 1 (5) |" in short
+    assert (
+        "**`roboschool`: 2 runs (seeds 1, 2; 100,000 steps each)** ([report](roboschool/report.md)):"
+        " HumanoidFlagrunHarder-v0 (table4-128) 2,000 ± 1,414 over the last 100 episodes (2 seeds; Figure 4: about"
+        " 3,000 near 100M), 0.25 flags reached an episode, got up 1 of 5 times down." in short
+    )
 
 
 def test_the_readmes_example_suite_is_one_entry_and_one_module(tmp_path, monkeypatch):

@@ -10,7 +10,7 @@ from pathlib import Path
 from reports import scores
 from reports.base import env_base, fmt, ordered_variants, suite_name
 from reports.humanoid import score_cells
-from reports.stats import group
+from reports.stats import group, mean_std
 from suites import COLUMNS
 
 ORDER = 2  # beside the humanoid suite
@@ -49,22 +49,22 @@ def tables(folder, runs, reference, results, level="##"):
 
 
 def summary(folder, runs, reference, results):
-    """README.md's short table: each task's score beside Figure 4's, and what its trained policy does (the report has
-    the rest)."""
+    """README.md's line of words: each task's score beside Figure 4's end point, and what its trained policy does (the
+    report has the tables)."""
     measures = read_measures(folder)
-    lines = [
-        "| env | setting | steps | last 100 (n) | paper, Fig. 4, near 100M (approx.) | flags reached an episode"
-        " | got up (times down) |",
-        "|---|---|---|---|---|---|---|",
-    ]
+    parts = []
     for env, v, setting_runs in settings(folder, runs):
+        last = [r.score for r in setting_runs]
+        part = f"{env} ({v}) {fmt(*mean_std(last))} over the last 100 episodes ({len(last)} seed{'s' * (len(last) > 1)}"
+        part += f"; Figure 4: about {paper(env, v, reference)} near 100M)" if paper(env, v, reference) != "–" else ")"
         rows = [row for r in setting_runs for row in measures.get(f"{r.env_id}__{r.variant}__seed{r.seed}", [])]
-        flags = f"{sum(float(row['flags']) for row in rows) / len(rows):.2f}" if rows else "–"
-        downs = sum(int(row["falls"]) + int(row["started_down"]) for row in rows)
-        up = f"{sum(int(row['getups']) for row in rows)} ({downs})" if rows else "–"
-        cells = [env, v, *score_cells(setting_runs)[:2], paper(env, v, reference), flags, up]
-        lines.append("| " + " | ".join(cells) + " |")
-    return lines
+        if rows:
+            downs = sum(int(row["falls"]) + int(row["started_down"]) for row in rows)
+            if "Flagrun" in env:
+                part += f", {sum(float(row['flags']) for row in rows) / len(rows):.2f} flags reached an episode"
+            part += f", got up {sum(int(row['getups']) for row in rows)} of {downs} times down"
+        parts.append(part)
+    return "; ".join(parts) + "."
 
 
 def read_measures(folder):

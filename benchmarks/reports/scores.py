@@ -90,7 +90,8 @@ def write_report(folder, runs, reference, results, tables, rule, columns, extra=
 def readme_lines(folder, runs, results, reference, full, tables, summary=None):
     """A suite's lines in a README's Results block: in full (benchmarks/README.md), its tables and curves; in short
     (README.md), for a suite that SUITES marks in_readme and a folder at its own budget, summary(folder, runs,
-    reference, results) (default: its tables) and a frame of the trained policy's video; else none."""
+    reference, results) (default: its tables; a string is a line of words after the heading) and a frame of the
+    trained policy's video; else none."""
     folder = Path(folder)
     rel = readme_rel(folder, full)  # links are relative to the README that holds the block
     seeds = ", ".join(map(str, sorted({r.seed for r in runs})))
@@ -112,8 +113,11 @@ def readme_lines(folder, runs, results, reference, full, tables, summary=None):
         ]
     if folder.name != suite_name(folder) or not SUITES[folder.name].in_readme:
         return []
-    table = (summary or (lambda *args: tables(*args, level="####")))(folder, runs, reference, results)
-    lines = ["", f"**{heading}** ([report]({rel}/report.md))", "", *table]
+    short = (summary or (lambda *args: tables(*args, level="####")))(folder, runs, reference, results)
+    if isinstance(short, str):  # a line of words, after the heading
+        lines = ["", f"**{heading}** ([report]({rel}/report.md)): {short}"]
+    else:  # table lines
+        lines = ["", f"**{heading}** ([report]({rel}/report.md))", "", *short]
     frames = sorted((folder / "video").glob("*.png"))  # a frame of the trained policy's video
     if frames:
         lines += ["", " ".join(f'<img src="{rel}/video/{frame.name}" width="32%">' for frame in frames)]
