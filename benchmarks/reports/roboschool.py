@@ -55,8 +55,10 @@ def summary(folder, runs, reference, results):
     parts = []
     for env, v, setting_runs in settings(folder, runs):
         last = [r.score for r in setting_runs]
-        part = f"{env} ({v}) {fmt(*mean_std(last))} over the last 100 episodes ({len(last)} seed{'s' * (len(last) > 1)}"
-        part += f"; Figure 4: about {paper(env, v, reference)} near 100M)" if paper(env, v, reference) != "–" else ")"
+        seeds = f"{len(last)} seeds" if len(last) > 1 else "1 seed"
+        figure = paper(env, v, reference)
+        part = f"{env} ({v}) {fmt(*mean_std(last))} over the last 100 episodes ({seeds}"
+        part += f"; Figure 4: about {figure} near 100M)" if figure != "–" else ")"
         rows = [row for r in setting_runs for row in measures.get(f"{r.env_id}__{r.variant}__seed{r.seed}", [])]
         if rows:
             downs = sum(int(row["falls"]) + int(row["started_down"]) for row in rows)
