@@ -22,9 +22,14 @@ RULE = (
 
 
 def paper(env, variant, reference):
-    """Figure 4's rough end point for the task, where issue 59 read one."""
+    """Figure 4's rough end point for the task, where issue 59 read one; else an empty string."""
     refs = [reference.get((column, env_base(env), variant)) for column, _, _ in COLUMNS["roboschool"]]
-    return "; ".join(fmt(r[0]) for r in refs if r) or "–"
+    return "; ".join(fmt(r[0]) for r in refs if r)
+
+
+def got_up(rows):
+    """(get-ups, times down) over episodes' measures: a time down is a fall or a start on the ground."""
+    return sum(int(r["getups"]) for r in rows), sum(int(r["falls"]) + int(r["started_down"]) for r in rows)
 
 
 def settings(folder, runs):
@@ -44,7 +49,7 @@ def tables(folder, runs, reference, results, level="##"):
         "|---|---|---|---|---|---|---|",
     ]
     for env, v, setting_runs in settings(folder, runs):
-        lines.append("| " + " | ".join([env, v, *score_cells(setting_runs), paper(env, v, reference)]) + " |")
+        lines.append("| " + " | ".join([env, v, *score_cells(setting_runs), paper(env, v, reference) or "–"]) + " |")
     return lines + measures_table(folder, level)
 
 
@@ -58,13 +63,13 @@ def summary(folder, runs, reference, results):
         seeds = f"{len(last)} seeds" if len(last) > 1 else "1 seed"
         figure = paper(env, v, reference)
         part = f"{env} ({v}) {fmt(*mean_std(last))} over the last 100 episodes ({seeds}"
-        part += f"; Figure 4: about {figure} near 100M)" if figure != "–" else ")"
+        part += f"; Figure 4: about {figure} near 100M)" if figure else ")"
         rows = [row for r in setting_runs for row in measures.get(f"{r.env_id}__{r.variant}__seed{r.seed}", [])]
         if rows:
-            downs = sum(int(row["falls"]) + int(row["started_down"]) for row in rows)
             if "Flagrun" in env:
                 part += f", {sum(float(row['flags']) for row in rows) / len(rows):.2f} flags reached an episode"
-            part += f", got up {sum(int(row['getups']) for row in rows)} of {downs} times down"
+            getups, downs = got_up(rows)
+            part += f", got up {getups} of {downs} times down"
         parts.append(part)
     return "; ".join(parts) + "."
 
@@ -102,8 +107,7 @@ def measures_table(folder, level):
             values = [float(r[key]) for r in rows if r[key] != ""]
             return sum(values) / len(values) if values else None
 
-        downs = sum(int(r["falls"]) + int(r["started_down"]) for r in rows)
-        getups = sum(int(r["getups"]) for r in rows)
+        getups, downs = got_up(rows)
         steps_up = mean("getup_steps")
         lines.append(
             f"| {name.replace('__', ', ')} | {mean('length'):.0f} | {mean('flags'):.2f} | {mean('speed_to_flag'):.2f}"
