@@ -173,7 +173,7 @@ class HumanoidForward(MujocoEnv):
         self.frame = 0
         self.feet_contact = np.zeros(2)
         self.target = np.array([1e3, 0.0])
-        self.cubes_thrown = 0
+        self.cubes_thrown = self.flags_reached = 0
         self.task_reset()
         state = self.calc_state()
         self.potential = self.calc_potential()

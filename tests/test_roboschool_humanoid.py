@@ -207,6 +207,26 @@ def test_the_flag_moves_on_reach_with_no_reward_jump():
     assert abs(env.target[0]) <= 105 * 0.25 * 0.5 and abs(env.target[1]) <= 50 * 0.25 * 0.5
 
 
+class MidpointRandom:
+    """A stand-in for the env's generator that draws the middle of every range: no joint noise, heading 0, the flag
+    at the origin, where the body starts."""
+
+    def uniform(self, low, high, size=None):
+        return np.broadcast_to((np.asarray(low) + np.asarray(high)) / 2, size or np.shape(low)).copy()
+
+    def integers(self, high):
+        return 1
+
+
+@pytest.mark.parametrize("task", ["HumanoidFlagrun", "HumanoidFlagrunHarder"])
+def test_a_first_flag_placed_within_reach_of_the_start_moves_and_is_not_counted(task):
+    env = gym.make(f"roboschool_humanoid:{task}-v0").unwrapped  # a new env: its first reset, as every rank's
+    env._np_random = MidpointRandom()
+    env.reset()
+    assert env.flags_reached == 0 and env.flag_moved and env.flag_timeout == 200
+    np.testing.assert_array_equal(env.target, [0.0, 0.0])  # moved onto the same midpoint, in reach again
+
+
 def test_the_flag_moves_after_200_steps_without_being_reached():
     env = make("HumanoidFlagrun", seed=4)
     qpos = env.data.qpos.copy()
