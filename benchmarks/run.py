@@ -277,10 +277,11 @@ def running_elsewhere(job):
 
 
 def last_step(job):
-    """The latest step a running job printed, from its log (the scripts print one every 10 s or so)."""
+    """The latest step a running job printed, from its log (the scripts print one every 10 s or so). The tail read is
+    long enough to reach past a failed attempt's traceback (two ranks' tracebacks under torchrun run to several KB)."""
     try:
         with open(job.run_dir / "log.txt", "rb") as f:
-            f.seek(max(0, os.path.getsize(f.name) - 4096))
+            f.seek(max(0, os.path.getsize(f.name) - 65536))
             tail = f.read().decode(errors="replace")
     except OSError:
         return 0

@@ -441,6 +441,12 @@ def test_progress_reads_the_last_step_or_rlhf_iteration_a_run_printed(tmp_path):
     assert run.last_step(job) == job.total_timesteps // 4
     (job.run_dir / "log.txt").write_text("step 12,345/1,000,000 | SPS 900\n")  # the gym scripts' lines
     assert run.last_step(job) == 12_345
+    # A resume after a failed attempt: the attempt's traceback follows the last step, as two ranks' did (8 KB).
+    traceback = "".join(
+        f'[rank{r}]:   File "ppo_continuous.py", line {i}, in train\n' for r in (0, 1) for i in range(100)
+    )
+    (job.run_dir / "log.txt").write_text("step 36,241,408/50,003,968 | SPS 4219\n" + traceback)
+    assert len(traceback) > 8000 and run.last_step(job) == 36_241_408
 
 
 def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
