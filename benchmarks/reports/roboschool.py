@@ -32,6 +32,11 @@ def got_up(rows):
     return sum(int(r["getups"]) for r in rows), sum(int(r["falls"]) + int(r["started_down"]) for r in rows)
 
 
+def can_get_up(name):
+    """Only FlagrunHarder's body can be down and go on; the other tasks end the episode when the torso falls."""
+    return "FlagrunHarder" in name
+
+
 def settings(folder, runs):
     """(env, variant, its runs), in the report's order."""
     by_env = group(runs)
@@ -68,8 +73,11 @@ def summary(folder, runs, reference, results):
         if rows:
             if "Flagrun" in env:
                 part += f", {sum(float(row['flags']) for row in rows) / len(rows):.2f} flags reached an episode"
-            getups, downs = got_up(rows)
-            part += f", got up {getups} of {downs} times down"
+            if can_get_up(env):
+                getups, downs = got_up(rows)
+                part += f", got up {getups} of {downs} times down"
+            else:
+                part += f", fell in {sum(int(row['falls']) > 0 for row in rows)} of {len(rows)} episodes"
         parts.append(part)
     return "; ".join(parts) + "."
 
@@ -95,7 +103,8 @@ def measures_table(folder, level):
         f"{len(next(iter(measures.values())))} episodes (env seeds 1, 2, ...), by `benchmarks/roboschool_measures.py`."
         " Down means the torso below 0.8 m (FlagrunHarder's rule); a knock-down is a fall within 30 steps of a cube's"
         " throw; got up counts the times it rose from the ground (from a fall or a start lying down), and the steps it"
-        " took on average. Means over episodes.",
+        " took on average, for FlagrunHarder (the other tasks end an episode when the body falls). Means over"
+        " episodes.",
         "",
         "| run | steps an episode | flags reached an episode | speed toward the flag or target (m/s)"
         " | falls (knock-downs) an episode | got up (times down) | steps to get up |",
@@ -109,10 +118,14 @@ def measures_table(folder, level):
 
         getups, downs = got_up(rows)
         steps_up = mean("getup_steps")
+        up = (
+            f"{getups} ({downs}) | {f'{steps_up:.0f}' if steps_up is not None else '–'}"
+            if can_get_up(name)
+            else "– | –"
+        )
         lines.append(
             f"| {name.replace('__', ', ')} | {mean('length'):.0f} | {mean('flags'):.2f} | {mean('speed_to_flag'):.2f}"
-            f" | {mean('falls'):.2f} ({mean('knockdowns'):.2f}) | {getups} ({downs})"
-            f" | {f'{steps_up:.0f}' if steps_up is not None else '–'} |"
+            f" | {mean('falls'):.2f} ({mean('knockdowns'):.2f}) | {up} |"
         )
     return lines
 
