@@ -599,6 +599,8 @@ def check_args(args):
         raise ValueError(f"--total-timesteps {args.total_timesteps} is less than one batch of {batch} steps")
     if args.device not in ("auto", "cpu") and not (args.device.startswith("cuda") and torch.cuda.is_available()):
         raise ValueError(f"--device {args.device} is not available here; use auto or cpu")
+    if args.compile and "WORLD_SIZE" in os.environ:  # the graph would hold the group, and gloo's threads, to the exit
+        raise ValueError("--compile is for one process; run torchrun without it")
     if args.resume or args.eval_checkpoint:
         _, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
     repeat_action_probability = atari_game(args.env_id)[1]  # a ValueError for an id that is not an Atari game's

@@ -647,6 +647,8 @@ def check_args(args):
         raise ValueError("--init-beta 0 never adapts (halving or doubling 0 leaves 0); add --no-adaptive-beta")
     if args.device not in ("auto", "cpu") and not (args.device.startswith("cuda") and torch.cuda.is_available()):
         raise ValueError(f"--device {args.device} is not available here; use auto or cpu")
+    if args.compile and "WORLD_SIZE" in os.environ:  # the graph would hold the group, and gloo's threads, to the exit
+        raise ValueError("--compile is for one process; run torchrun without it")
     if args.resume or args.eval_checkpoint:
         _, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
     world_size = int(os.environ.get("WORLD_SIZE", 1))  # torchrun's P

@@ -7,10 +7,12 @@
 r B/2, ..., r B/2 + B/2 - 1), and runs K epochs of the script's own minibatch_loss and gradient_step on it, each rank
 taking its half of every minibatch; it also feeds each rank's half of a stream of observations to the script's
 RunningMeanStd and merges them. `main` runs the script's main() and keeps the agent its train() returns, the KL that
-each call of the script's KL rule (Table 4's step size, §4's beta) read, and the seeds its envs were reset with. Both
-write each rank's weights (and statistics) to OUT.rank<r>.pt.
+each call of the script's KL rule (Table 4's step size, §4's beta) read, the seeds its envs were reset with, and the
+names of the threads still running after main() returned. Both write each rank's weights (and statistics) to
+OUT.rank<r>.pt.
 """
 
+import gc
 import os
 import sys
 from pathlib import Path
@@ -130,6 +132,9 @@ def main():
             code = e.code
         rank = int(os.environ["RANK"])  # main() has left the process group
         result = {"agent": agents[-1].state_dict(), "exit": code, "episodes": sum(episodes), "kls": kls, "seeds": seeds}
+        gc.collect()  # what is left of the run once main() has returned: the OS threads still running (Linux)
+        tasks = Path("/proc/self/task")
+        result["threads"] = [(t / "comm").read_text().strip() for t in tasks.iterdir()] if tasks.is_dir() else None
         torch.save(result, f"{out}.rank{rank}.pt")
         sys.exit(code)
     torch.save(result, f"{out}.rank{rank}.pt")

@@ -194,13 +194,14 @@ REACHED = {
     # torchrun (issue 53: the section MANY PROCESSES, the normalizers' merge, one record, the ranks' stops and faults),
     # run dirs made atomically and filming checked before the run (issue 55); torch._dynamo imported before the group;
     # issue 59, no line: a dash for the return before the first episode ends (2 characters) and, in the MuJoCo
-    # scripts, a module:id whose module is not found refused in one line (15)
-    ("ppo_continuous.py", "lines"): 754,
-    ("ppo_continuous.py", "code_chars"): 23_309,
-    ("ppo_atari.py", "lines"): 703,
-    ("ppo_atari.py", "code_chars"): 21_939,
-    ("ppo_kl_penalty.py", "lines"): 768,
-    ("ppo_kl_penalty.py", "code_chars"): 23_671,
+    # scripts, a module:id whose module is not found refused in one line (15); --compile under torchrun refused in
+    # one line (2 lines and 120 characters a script: the compiled graph held the group, and gloo's threads, to the exit)
+    ("ppo_continuous.py", "lines"): 756,
+    ("ppo_continuous.py", "code_chars"): 23_429,
+    ("ppo_atari.py", "lines"): 705,
+    ("ppo_atari.py", "code_chars"): 22_059,
+    ("ppo_kl_penalty.py", "lines"): 770,
+    ("ppo_kl_penalty.py", "code_chars"): 23_791,
 }
 NOT_MET = set(REACHED)
 CASES = [
