@@ -175,8 +175,9 @@ def rlhf_tiny_args(tmp_path, name="run", **overrides):
     return rlhf.Args(**{**values, "torch_threads": 1, "run_dir": str(tmp_path / name), **overrides})
 
 
-def fake_run(folder, env_id, variant, seed, last100_mean, steps=100_000):
-    """A results CSV whose last 100 episodes average last100_mean, after 50 early episodes that must not count."""
+def fake_run(folder, env_id, variant, seed, last100_mean, steps=100_000, meta=()):
+    """A results CSV whose last 100 episodes average last100_mean, after 50 early episodes that must not count; `meta`:
+    more (key, value) lines for its header."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from results import write_csv
 
@@ -191,6 +192,7 @@ def fake_run(folder, env_id, variant, seed, last100_mean, steps=100_000):
         ("versions", "test versions"),
         ("machine", "test machine"),
         ("wall_time_s", "60"),
+        *meta,
     ]
     write_csv(folder / f"{env_id}__{variant}__seed{seed}.csv", header, rows)
 

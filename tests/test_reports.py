@@ -711,6 +711,37 @@ def test_the_overoptimization_report_answers_whether_an_ensemble_peaks_later_and
     assert "| ens4-mean | 4,096 × 4 |" in text
 
 
+def test_the_fits_of_a_reward_model_size_give_the_held_out_accuracy_of_the_single_reward_models_fitted(tmp_path):
+    """Gao et al.'s forms are fitted to the beta-0 runs of one reward model: the row's held-out accuracy is theirs, not
+    pooled with the ensembles' trained on the same number of pairs (4 reward models, another accuracy)."""
+    from reports import overoptimization as over
+
+    folder = tmp_path / "rlhf-long"
+    d = np.linspace(0.05, 4.5, 100)
+    gold = 1.0 + over.curve("rl", 2.0, 1.0, d)
+    for variant, accuracy in (("beta0", "0.8500"), ("ens4-mean", "0.9900")):
+        for seed in (1, 2, 3):
+            fake_run(folder, "reviews", variant, seed, 1.0, 102_400, [("rm_held_out_accuracy", accuracy)])
+            stats = [{"score": i / 99, "gold_score": gold[i], "kl": d[i] ** 2} for i in range(100)]
+            rows = [[(i + 1) * 1024] + [stats[i].get(name, 0.0) for name in RLHF_STATS] for i in range(100)]
+            write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", RLHF_STATS, rows)
+            if variant == "ens4-mean":
+                columns = ("rm_disagreement", *(f"rm_member{k}" for k in range(4)))
+                rows = [[(i + 1) * 1024, 0.1, *(i / 99 + k / 10 for k in range(4))] for i in range(100)]
+                write_series(folder / "ensemble" / f"reviews__{variant}__seed{seed}.csv", columns, rows)
+        where = over.best_of_n_folder(tmp_path, 4096) / "best_of_n"
+        where.mkdir(parents=True, exist_ok=True)
+        for seed in (1, 2, 3):
+            lines = ["# wall_time_s: 60", ",".join(BEST_OF_N)]
+            for n in (1, 2, 4, 8, 16, 32, 64):
+                kl = math.log(n) - (n - 1) / n
+                lines.append(f"{n},{kl},0.5,{1.0 + over.curve('bon', 3.0, 0.5, math.sqrt(kl))},1,0,0,0.9")
+            (where / f"seed{seed}.csv").write_text("\n".join(lines) + "\n")
+    text = report.report(folder, results=tmp_path)
+    fits = [line for line in text.splitlines() if line.startswith("| 4,096 | ")]
+    assert len(fits) == 2 and all(line.startswith("| 4,096 | 0.85 ± 0.00 | ") for line in fits), fits
+
+
 def test_a_clone_of_one_commit_regenerates_the_rlhf_report_and_block_unchanged(tmp_path):
     """What a run's RM accuracy measures is in its CSV (results.RM_ACCURACY), not asked of git: a clone made with
     --depth 1, as CI's default checkout on the big hosting services, has no history to ask, and regenerates the rlhf

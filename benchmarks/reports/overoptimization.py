@@ -268,7 +268,7 @@ def write_report(folder, runs, reference, results):
     ]
     g0 = {seed: value for (_, seed), value in sft_of.items()}
     for pairs in sizes:
-        accuracy = [held_out[k] for k in held_out if rm_pairs(k[0]) == pairs]
+        accuracy = [held_out[k] for k in held_out if rm_pairs(k[0]) == pairs and ensemble_of(k[0]) == 1]  # one RM's
         for form in FORMS:
             rows = {seed: v for (f, p, seed), v in sorted(fits.items()) if f == form and p == pairs}
             if rows:
