@@ -608,6 +608,20 @@ def test_gaos_forms_are_fitted_back_from_points_of_known_alpha_and_beta(form):
     assert rising[3] == float("inf") or rising[2] > d.max() * 5
 
 
+def fake_best_of_n(results, pairs, alpha, beta, g0):
+    """Best-of-N's 7 points (N = 1 ... 64) for seeds 1-3 of a reward model of `pairs`, on Gao et al.'s form."""
+    from reports import overoptimization as over
+
+    where = over.best_of_n_folder(results, pairs) / "best_of_n"
+    where.mkdir(parents=True, exist_ok=True)
+    for seed in (1, 2, 3):
+        lines = ["# wall_time_s: 60", ",".join(BEST_OF_N)]
+        for n in (1, 2, 4, 8, 16, 32, 64):
+            kl = math.log(n) - (n - 1) / n
+            lines.append(f"{n},{kl},0.5,{g0 + over.curve('bon', alpha, beta, math.sqrt(kl))},1,0,0,0.9")
+        (where / f"seed{seed}.csv").write_text("\n".join(lines) + "\n")
+
+
 def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from_them(tmp_path):
     """Issue 54: on runs drawn from Gao et al.'s RL form with known alpha and beta per reward model size, and best-of-N
     points from its own form, the rlhf-long report fits both back per size, counts the beta-0 runs that pass their
@@ -632,14 +646,7 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
                 rows.append([(i + 1) * 1024] + [stats.get(name, 0.5) for name in RLHF_STATS])
             write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", RLHF_STATS, rows)
     for pairs, (alpha, beta) in bon.items():
-        where = over.best_of_n_folder(tmp_path, pairs) / "best_of_n"
-        where.mkdir(parents=True, exist_ok=True)
-        for seed in (1, 2, 3):
-            lines = ["# wall_time_s: 60", ",".join(BEST_OF_N)]
-            for n in (1, 2, 4, 8, 16, 32, 64):
-                kl = math.log(n) - (n - 1) / n
-                lines.append(f"{n},{kl},0.5,{g0 + over.curve('bon', alpha, beta, math.sqrt(kl))},1,0,0,0.9")
-            (where / f"seed{seed}.csv").write_text("\n".join(lines) + "\n")
+        fake_best_of_n(tmp_path, pairs, alpha, beta, g0)
     text = report.report(folder, results=tmp_path)
 
     def fitted(pairs, form):
@@ -729,14 +736,7 @@ def test_the_fits_of_a_reward_model_size_give_the_held_out_accuracy_of_the_singl
                 columns = ("rm_disagreement", *(f"rm_member{k}" for k in range(4)))
                 rows = [[(i + 1) * 1024, 0.1, *(i / 99 + k / 10 for k in range(4))] for i in range(100)]
                 write_series(folder / "ensemble" / f"reviews__{variant}__seed{seed}.csv", columns, rows)
-        where = over.best_of_n_folder(tmp_path, 4096) / "best_of_n"
-        where.mkdir(parents=True, exist_ok=True)
-        for seed in (1, 2, 3):
-            lines = ["# wall_time_s: 60", ",".join(BEST_OF_N)]
-            for n in (1, 2, 4, 8, 16, 32, 64):
-                kl = math.log(n) - (n - 1) / n
-                lines.append(f"{n},{kl},0.5,{1.0 + over.curve('bon', 3.0, 0.5, math.sqrt(kl))},1,0,0,0.9")
-            (where / f"seed{seed}.csv").write_text("\n".join(lines) + "\n")
+    fake_best_of_n(tmp_path, 4096, 3.0, 0.5, 1.0)
     text = report.report(folder, results=tmp_path)
     fits = [line for line in text.splitlines() if line.startswith("| 4,096 | ")]
     assert len(fits) == 2 and all(line.startswith("| 4,096 | 0.85 ± 0.00 | ") for line in fits), fits
