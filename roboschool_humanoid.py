@@ -58,6 +58,7 @@ MOTORS += [("left_hip_x", 100), ("left_hip_z", 100), ("left_hip_y", 300), ("left
 MOTORS += [("right_shoulder1", 75), ("right_shoulder2", 75), ("right_elbow", 75)]
 MOTORS += [("left_shoulder1", 75), ("left_shoulder2", 75), ("left_elbow", 75)]
 POWER = 0.41
+JOINT_DAMPING = 0.5  # N m s/rad: Roboschool's joints had none, but MuJoCo's integrator needs a little
 # 17 joints, of which about 4 matter for walking: the costs are scaled by 17 / 4 = 4.25.
 ELECTRICITY_COST = -2.0 * 4.25
 STALL_TORQUE_COST = -0.1 * 4.25
@@ -67,13 +68,16 @@ INITIAL_Z = 0.8  # the state's height is the torso's above this
 # Half the stadium of Roboschool's scene (105 x 50 m, scaled by 0.25), and half of that again: "more compact".
 FLAG_HALF = np.array([105 * 0.25 * 0.5, 50 * 0.25 * 0.5])  # x, y
 FLAG_TIMEOUT = 200
+# MuJoCo's warnings of an unstable simulation, after each of which it resets the state to the model's.
+UNSTABLE = [mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL, mujoco.mjtWarning.mjWARN_BADQACC]
 BODIES = "torso lwaist pelvis right_thigh right_shin right_foot left_thigh left_shin left_foot".split()
 BODIES += "right_upper_arm right_lower_arm left_upper_arm left_lower_arm".split()
 
 
 def humanoid_model(cube, width, height):
-    """Gymnasium's humanoid.xml, from the installed package, changed with MjSpec: Roboschool's timestep and motors, a
-    flag marker on a mocap body, a camera that follows the body, and for FlagrunHarder the cube on a free joint."""
+    """Gymnasium's humanoid.xml, from the installed package, changed with MjSpec into Roboschool's body as its Bullet
+    read it (see the module's docstring): its timestep and motors, a flag marker on a mocap body, a camera that follows
+    the body, and for FlagrunHarder the cube on a free joint."""
     import gymnasium.envs.mujoco
 
     spec = mujoco.MjSpec.from_file(os.path.join(os.path.dirname(gymnasium.envs.mujoco.__file__), "assets/humanoid.xml"))
@@ -82,6 +86,27 @@ def humanoid_model(cube, width, height):
     # Bullet too steps with a semi-implicit Euler, and Newton solves the same contact problem in fewer iterations.
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
+    # Roboschool's humanoid_symmetric.xml, where gymnasium's humanoid.xml differs: every geom has friction 0.8 (condim
+    # 3, also between body parts), as has Roboschool's floor; the hips bend to -120 degrees, not -110.
+    for geom in spec.geoms:
+        geom.condim = 3
+        geom.friction = [0.8, 0.1, 0.1]
+    for side in ("right", "left"):
+        spec.joint(f"{side}_hip_y").range = [-120.0, 20.0]  # degrees, as the file's compiler reads angles
+    # Bullet's importer reads no stiffness and leaves damping and armature unread: Roboschool's joints had no springs
+    # and no dampers. Ours have no springs, and keep the least that MuJoCo needs to stay stable at this timestep under
+    # bang-bang actions: gymnasium's armature (a rotor's inertia, 0.003-0.02) and a damper of 0.5 N m s/rad, where
+    # gymnasium's are 1-5.
+    for joint in spec.joints:
+        if joint.type == mujoco.mjtJoint.mjJNT_HINGE:
+            joint.stiffness[:] = 0.0
+            joint.damping[:] = JOINT_DAMPING
+    # Roboschool loaded the body so that a link never touches any of its ancestors; MuJoCo skips only the parent.
+    for body in spec.bodies:
+        ancestor = body.parent.parent if body.parent else None
+        while ancestor is not None and ancestor.name != "world":
+            spec.add_exclude(bodyname1=ancestor.name, bodyname2=body.name)
+            ancestor = ancestor.parent
     spec.geom("floor").size[:2] *= 10  # drawn 400 m wide, not 40: a 1,000-step forward walk goes further
     spec.material("MatPlane").texrepeat *= 10  # the same squares; a plane's size changes only what is drawn
     for actuator in list(spec.actuators):
@@ -151,7 +176,14 @@ class HumanoidForward(MujocoEnv):
         low, high = np.array([joint.range for joint in joints]).T
         self.joint_mid = (low + high) / 2
         self.joint_half_range = (high - low) / 2
-        self.body_index = np.array([model.body(name).id for name in BODIES])
+        # Bullet put a link's frame at the centre of its body's last geom, and made a massless link at each joint of
+        # a body with joints. Roboschool's torso is the first (its height, speed and angles); its parts are the others.
+        last_geom = model.body_geomadr + model.body_geomnum - 1
+        self.torso = model.body("torso").id
+        self.torso_geom = last_geom[self.torso]
+        self.torso_offset = model.geom_pos[self.torso_geom].copy()  # from the torso's origin, in its frame
+        self.part_geoms = last_geom[[model.body(name).id for name in BODIES[1:]]]
+        self.joint_ids = np.array([joint.id for joint in joints])
         self.foot_geoms = [model.geom("right_foot").id, model.geom("left_foot").id]
         self.floor = model.geom("floor").id
 
@@ -162,13 +194,16 @@ class HumanoidForward(MujocoEnv):
     def reset_model(self):
         qpos = self.init_qpos.copy()
         qpos[self.qpos_index] = self.np_random.uniform(-0.1, 0.1, len(MOTORS))
-        if self.random_yaw:  # the torso's pose; the xml's (upright at 1.4 m, facing x) otherwise
+        z, pitch, yaw = 1.4, 0.0, 0.0  # the xml's pose: upright, facing x
+        if self.random_yaw:
             yaw = self.np_random.uniform(-3.14, 3.14)
-            z, pitch = 1.4, 0.0
             if self.random_lean and self.np_random.integers(2) == 0:
                 z, pitch = (0.45, np.pi / 2) if self.np_random.integers(2) == 0 else (0.25, np.pi * 3 / 2)
-            qpos[2] = z
-            qpos[3:7] = quaternion(0.0, pitch, yaw)
+        # Roboschool puts the torso's Bullet frame at (0, 0, z), and so 0.12 m higher than the xml's torso origin.
+        qpos[3:7] = quaternion(0.0, pitch, yaw)
+        rotation = np.zeros(9)
+        mujoco.mju_quat2Mat(rotation, qpos[3:7])
+        qpos[0:3] = np.array([0.0, 0.0, z]) - rotation.reshape(3, 3) @ self.torso_offset
         self.set_state(qpos, np.zeros(self.model.nv))
         self.frame = 0
         self.feet_contact = np.zeros(2)
@@ -186,21 +221,26 @@ class HumanoidForward(MujocoEnv):
     def humanoid_state(self):
         """The 44 numbers of the state; also keeps what the reward reads (joint speeds, joints at limit, the body's
         position and angles, the distance to the target)."""
-        qpos, qvel = self.data.qpos, self.data.qvel
+        data = self.data
+        qpos, qvel = data.qpos, data.qvel
         positions = (qpos[self.qpos_index] - self.joint_mid) / self.joint_half_range
         self.joint_speeds = 0.1 * qvel[self.qvel_index]  # 10 rad/s is 1
         self.joints_at_limit = np.count_nonzero(np.abs(positions) > 0.99)
-        # The body's x, y: the mean of its 13 bodies'; its z: the torso's, "more informative than the mean".
-        x, y = self.data.xpos[self.body_index, :2].mean(0)
-        self.body_xyz = np.array([x, y, qpos[2]])
+        # The body's x, y: the mean of its parts' (29 links); its z: the torso's, "more informative than the mean".
+        torso = data.geom_xpos[self.torso_geom]
+        x, y = np.concatenate([data.geom_xpos[self.part_geoms], data.xanchor[self.joint_ids]])[:, :2].mean(0)
+        self.body_xyz = np.array([x, y, torso[2]])
         roll, pitch, yaw = self.body_rpy = roll_pitch_yaw(qpos[3:7])
+        # The torso frame's velocity: the free joint's (of the torso's origin), plus the spin's share at the offset.
+        spin = data.xmat[self.torso].reshape(3, 3) @ qvel[3:6]
+        self.body_velocity = qvel[0:3] + np.cross(spin, torso - data.xpos[self.torso])
         to_target = self.target - self.body_xyz[:2]
         self.walk_target_dist = np.linalg.norm(to_target)
         angle_to_target = np.arctan2(to_target[1], to_target[0]) - yaw
         # The torso's velocity turned into the heading's frame; 0.3 brings typical speeds into [-1, 1].
-        vx, vy, vz = qvel[0:3]
+        vx, vy, vz = self.body_velocity
         velocity = [np.cos(yaw) * vx + np.sin(yaw) * vy, -np.sin(yaw) * vx + np.cos(yaw) * vy, vz]
-        more = [qpos[2] - INITIAL_Z, np.sin(angle_to_target), np.cos(angle_to_target), *(0.3 * np.array(velocity))]
+        more = [self.body_xyz[2] - INITIAL_Z, np.sin(angle_to_target), np.cos(angle_to_target), *(0.3 * np.array(velocity))]
         joints = np.stack([positions, self.joint_speeds], 1).ravel()  # position and speed, joint by joint
         state = np.concatenate([more, [roll, pitch], joints, self.feet_contact])
         return np.clip(state, -5.0, 5.0).astype(np.float32)
@@ -233,8 +273,12 @@ class HumanoidForward(MujocoEnv):
 
     def step(self, action):
         a = np.asarray(action, dtype=np.float64)
+        if a.shape != (len(MOTORS),):  # as gymnasium's Humanoid-v5 refuses it: no silent broadcast to 17 motors
+            raise ValueError(f"Action dimension mismatch. Expected {(len(MOTORS),)}, found {a.shape}")
         self.data.ctrl[:] = np.clip(a, -1.0, 1.0)  # torque = 0.41 x power x the clipped action (the motors' gear)
+        resets = sum(self.data.warning[w].number for w in UNSTABLE)
         mujoco.mj_step(self.model, self.data, nstep=FRAME_SKIP)
+        diverged = sum(self.data.warning[w].number for w in UNSTABLE) > resets
         mujoco.mj_kinematics(self.model, self.data)  # the bodies' positions after the last physics step
         self.flag_moved = False
         state = self.calc_state()
@@ -249,8 +293,10 @@ class HumanoidForward(MujocoEnv):
             "joints_at_limit": JOINTS_AT_LIMIT_COST * self.joints_at_limit,
             "feet_collision": self.feet_collision_cost(),
         }
+        if diverged:  # MuJoCo found the physics unstable and reset the body: a fall, with nothing paid for the jump
+            terms = dict.fromkeys(terms, 0.0) | {"alive": -1.0}
         self.frame += 1
-        terminated = alive < 0 or not np.isfinite(state).all()
+        terminated = terms["alive"] < 0 or not np.isfinite(state).all()
         info = {f"reward_{name}": float(value) for name, value in terms.items()}
         info |= {"flags_reached": self.flags_reached, "flag_moved": self.flag_moved, "cubes_thrown": self.cubes_thrown}
         info |= {"distance_to_target": self.walk_target_dist, "torso_z": self.body_xyz[2]}
@@ -307,7 +353,7 @@ class HumanoidFlagrunHarder(HumanoidFlagrun):
         """The cube, from 4 m away at a random angle and 1 m up, at 20-30 m/s toward where the torso will be."""
         angle = self.np_random.uniform(-3.14, 3.14)
         attack_speed = self.np_random.uniform(20.0, 30.0)
-        target = self.body_xyz + self.data.qvel[0:3] * (4.0 / attack_speed)
+        target = self.body_xyz + self.body_velocity * (4.0 / attack_speed)
         start = target + np.array([4.0 * np.cos(angle), 4.0 * np.sin(angle), 1.0])
         velocity = (target - start) * attack_speed / np.linalg.norm(target - start)
         velocity += self.np_random.uniform(-1.0, 1.0, 3)
