@@ -81,8 +81,9 @@ class Job:
 
     @property
     def identity(self):
-        """What makes two runs the same run, wherever their results are kept."""
-        return (self.script, tuple(self.flags), self.env_id, self.seed, self.total_timesteps, self.ranks)
+        """What makes two runs the same run, wherever their results are kept: the same command on the same rules."""
+        rules = SUITES[self.suite].rules
+        return (self.script, tuple(self.flags), self.env_id, self.seed, self.total_timesteps, self.ranks, rules)
 
     def command(self, save_every=None):
         """The command that starts this run from scratch, relative to the repository root."""

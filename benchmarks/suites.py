@@ -51,6 +51,7 @@ class Suite:
     report: str = "mujoco"  # the module of benchmarks/reports/ that writes its report.md and README lines
     ranks: dict[str, int] = field(default_factory=dict)  # variant -> torchrun's processes for one run (else 1)
     in_readme: bool = False  # whether README.md's Results block summarizes it (at its own budget)
+    rules: str = ""  # the envs' rules, when a module of ours defines them: runs on other rules are not the same runs
 
 
 SUITES = {
@@ -264,6 +265,7 @@ SUITES = {
         only={"table4": (ROBOSCHOOL[:1], [1, 2, 3]), "table4-128": (ROBOSCHOOL[1:], [1, 2, 3])},
         ranks={"table4": 2, "table4-128": 2},
         report="roboschool",
+        rules="Roboschool's body",
     ),
 }
 
