@@ -672,9 +672,9 @@ def check_args(args):
 
 
 def new_run_dir(args):
-    """Make runs/{env_id}__{exp_name}__{seed}__{time}, or, if a run started in the same second has it, the next free
-    name (...-2, -3, ...): mkdir is atomic, so no two runs share one. Under torchrun, rank 0 makes it for every rank."""
-    base = f"runs/{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    """Make runs/{env_id}__{exp_name}__{seed}__{time}, the id without a module: prefix (its colon breaks scp), or, if
+    taken, the next free name (...-2, -3, ...), atomically by mkdir. Under torchrun, rank 0 makes it for every rank."""
+    base = f"runs/{args.env_id.split(':')[-1]}__{args.exp_name}__{args.seed}__{int(time.time())}"
     name = [base]
     for clash in itertools.count(2) if rank_and_size()[0] == 0 else ():
         with contextlib.suppress(FileExistsError):  # the name is taken: try the next

@@ -1,14 +1,19 @@
 """The PPO paper's three humanoid tasks (§6.3, Figure 4), with Roboschool's rules, on MuJoCo.
 
 The paper ran RoboschoolHumanoid, RoboschoolHumanoidFlagrun and RoboschoolHumanoidFlagrunHarder: Roboschool's first
-release (openai/roboschool at commit 911f7cd, May 2017, its "-v0" tasks) on its own Bullet build, which no longer
-installs. This module rebuilds the three tasks with the rules of that commit on gymnasium's MuJoCo humanoid, and
-registers them with gymnasium. No script imports it: gymnasium's `module:id` form loads it by name, so
+release (openai/roboschool at 911f7cd, May 2017, its "-v0" tasks) on its own Bullet build, which no longer installs.
+This module rebuilds them on MuJoCo with that commit's rules and body, and registers them with gymnasium. No script
+imports it: gymnasium's `module:id` form loads it by name, so
 
     python ppo_continuous.py --env-id roboschool_humanoid:HumanoidFlagrun-v0
     torchrun --standalone --nproc-per-node 2 ppo_continuous.py --env-id roboschool_humanoid:HumanoidFlagrunHarder-v0
 
 The ids drop "Roboschool", whose engine this is not, and keep "-v0": the rules of its v0 tasks (v1 changed them).
+
+The body is humanoid_symmetric.xml as Roboschool's Bullet (olegklimov/bullet3, May 2017) read it, made with MjSpec from
+gymnasium's humanoid.xml: friction 0.8 on every geom, hips to -120 degrees, no joint springs, no contact between a part
+and its ancestors. Bullet put a link's frame at its body's last geom's centre, and a massless link at each joint: the
+rules' "torso" is that of the torso (0.12 m below MuJoCo's origin), the body's parts the 12 other links and 17 joints'.
 
 The rules (each step is 4 physics steps of 0.0165/4 s, an episode 1,000 steps):
 - State, 44 numbers clipped to [-5, 5]: the torso's height above 0.8 m; sin and cos of the angle from the torso's
@@ -16,11 +21,11 @@ The rules (each step is 4 physics steps of 0.0165/4 s, an episode 1,000 steps):
   joints' position scaled to [-1, 1] between its limits and its speed x 0.1; the two feet's contact with the floor, as
   the previous step left it (Roboschool reads the contacts after it has made the state).
 - Reward, the sum of: alive, +2 while the torso is above 0.78 m, else -1 and the episode ends; progress, the change of
-  the potential -(distance to the target) / dt, the distance measured from the mean x, y of the 13 bodies; electricity,
+  the potential -(distance to the target) / dt, the distance measured from the mean x, y of the 29 parts; electricity,
   -2 x 4.25 x mean |action x scaled joint speed|, and stall torque, -0.1 x 4.25 x mean action^2; -0.1 for each joint
   past 0.99 of its scaled range; -1 for each foot touching anything but the floor. Each motor's torque is
   0.41 x its power (100 for the abdomen and the hips' x and z, 300 for the hips' y, 200 for the knees, 75 for the
-  arms) x the action clipped to [-1, 1]. Joints start uniform in +-0.1 rad.
+  arms) x the action clipped to [-1, 1]. Joints start uniform in +-0.1 rad, at rest, the torso at (0, 0, 1.4).
 - HumanoidForward-v0: the target 1 km ahead, along x.
 - HumanoidFlagrun-v0: a uniform random heading at the start; the flag uniform in [-13.125, 13.125] x [-6.25, 6.25] m,
   moved when the body comes within 1 m of it or after 200 steps, and the potential reset to the new flag's at a move,
@@ -34,12 +39,11 @@ The rules (each step is 4 physics steps of 0.0165/4 s, an episode 1,000 steps):
 
 Where ours differs from Roboschool, judge the comparison with Figure 4 by these:
 - The engine: MuJoCo (its implicitfast integrator and Newton solver, as Bullet a semi-implicit Euler), not Bullet:
-  contacts, friction and the joints' springs and dampers act differently.
-- The body: gymnasium's humanoid.xml, not Roboschool's humanoid_symmetric.xml. Its hips' y bend to -110 degrees, not
-  -120; its contacts between body parts have no friction (condim 1) and the floor's friction is 1, not 0.8.
-- A body's position is its frame's origin (MuJoCo's xpos), where Bullet's links may sit at their centre of mass.
+  contacts, friction and joint limits act differently. To stay stable at this timestep MuJoCo needs a damper (0.5 N m
+  s/rad) and an armature; a step it finds unstable ends the episode as a fall, as a state that was not finite did.
+- Bullet put a link's centre of mass at its last geom's centre, with its bounding box's inertia; ours are the geoms'.
 - Random numbers come from gymnasium's generator, so no episode is Roboschool's, draw for draw.
-The flag is a marker (it touches nothing), filmed by a camera that follows the body from 5 m south and 5 m up.
+The flag is a marker (it touches nothing), filmed by a camera that follows the body.
 """
 
 import os
@@ -58,7 +62,7 @@ MOTORS += [("left_hip_x", 100), ("left_hip_z", 100), ("left_hip_y", 300), ("left
 MOTORS += [("right_shoulder1", 75), ("right_shoulder2", 75), ("right_elbow", 75)]
 MOTORS += [("left_shoulder1", 75), ("left_shoulder2", 75), ("left_elbow", 75)]
 POWER = 0.41
-JOINT_DAMPING = 0.5  # N m s/rad: Roboschool's joints had none, but MuJoCo's integrator needs a little
+JOINT_DAMPING = 0.5  # N m s/rad, gymnasium's 1-5: the least that keeps MuJoCo stable under bang-bang actions
 # 17 joints, of which about 4 matter for walking: the costs are scaled by 17 / 4 = 4.25.
 ELECTRICITY_COST = -2.0 * 4.25
 STALL_TORQUE_COST = -0.1 * 4.25
@@ -68,6 +72,7 @@ INITIAL_Z = 0.8  # the state's height is the torso's above this
 # Half the stadium of Roboschool's scene (105 x 50 m, scaled by 0.25), and half of that again: "more compact".
 FLAG_HALF = np.array([105 * 0.25 * 0.5, 50 * 0.25 * 0.5])  # x, y
 FLAG_TIMEOUT = 200
+CAMERA_BACK, CAMERA_SIDE, CAMERA_UP, CAMERA_LOOK = 3.5, 1.5, 2.0, 3.0  # m: the film's camera from the body, its aim
 # MuJoCo's warnings of an unstable simulation, after each of which it resets the state to the model's.
 UNSTABLE = [mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL, mujoco.mjtWarning.mjWARN_BADQACC]
 BODIES = "torso lwaist pelvis right_thigh right_shin right_foot left_thigh left_shin left_foot".split()
@@ -75,9 +80,8 @@ BODIES += "right_upper_arm right_lower_arm left_upper_arm left_lower_arm".split(
 
 
 def humanoid_model(cube, width, height):
-    """Gymnasium's humanoid.xml, from the installed package, changed with MjSpec into Roboschool's body as its Bullet
-    read it (see the module's docstring): its timestep and motors, a flag marker on a mocap body, a camera that follows
-    the body, and for FlagrunHarder the cube on a free joint."""
+    """Gymnasium's humanoid.xml, changed with MjSpec into Roboschool's body, timestep and motors, with a flag marker on
+    a mocap body, the film's camera, and for FlagrunHarder the cube on a free joint."""
     import gymnasium.envs.mujoco
 
     spec = mujoco.MjSpec.from_file(os.path.join(os.path.dirname(gymnasium.envs.mujoco.__file__), "assets/humanoid.xml"))
@@ -86,17 +90,13 @@ def humanoid_model(cube, width, height):
     # Bullet too steps with a semi-implicit Euler, and Newton solves the same contact problem in fewer iterations.
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
-    # Roboschool's humanoid_symmetric.xml, where gymnasium's humanoid.xml differs: every geom has friction 0.8 (condim
-    # 3, also between body parts), as has Roboschool's floor; the hips bend to -120 degrees, not -110.
+    # humanoid_symmetric.xml: friction 0.8 on every geom (condim 3, body parts too), and hips' y to -120 degrees.
     for geom in spec.geoms:
         geom.condim = 3
         geom.friction = [0.8, 0.1, 0.1]
     for side in ("right", "left"):
         spec.joint(f"{side}_hip_y").range = [-120.0, 20.0]  # degrees, as the file's compiler reads angles
-    # Bullet's importer reads no stiffness and leaves damping and armature unread: Roboschool's joints had no springs
-    # and no dampers. Ours have no springs, and keep the least that MuJoCo needs to stay stable at this timestep under
-    # bang-bang actions: gymnasium's armature (a rotor's inertia, 0.003-0.02) and a damper of 0.5 N m s/rad, where
-    # gymnasium's are 1-5.
+    # Bullet read no springs and no dampers; MuJoCo keeps gymnasium's armature and a little damping to stay stable.
     for joint in spec.joints:
         if joint.type == mujoco.mjtJoint.mjJNT_HINGE:
             joint.stiffness[:] = 0.0
@@ -116,17 +116,15 @@ def humanoid_model(cube, width, height):
         motor.gear[0] = POWER * power
         motor.ctrllimited = True
         motor.ctrlrange = [-1.0, 1.0]
-    camera = spec.camera("track")  # follows the body's centre of mass from 5 m to the side and 5 m up, wide: the flag
-    camera.pos = [0.0, -5.0, 5.0]  # in sight while it is within about 8 m
-    camera.alt.xyaxes = [1.0, 0.0, 0.0, 0.0, 0.707, 0.707]
-    camera.fovy = 65.0
+    spec.delete(spec.camera("track"))
+    spec.worldbody.add_camera(name="track", fovy=60.0)  # render() places it behind the body, facing the flag
     flag = spec.worldbody.add_body(name="flag", mocap=True)
     marker = dict(contype=0, conaffinity=0, rgba=[0.9, 0.2, 0.2, 1.0])
     flag.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, 0, 0, 1.5], size=[0.03, 0, 0], **marker)
     flag.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=[0, 0, 1.5], size=[0.2, 0, 0], **marker)
     if cube:  # Roboschool's cube.urdf: a 0.1 m box of 0.6 kg, resting at (-1.5, 0) until it is thrown
         body = spec.worldbody.add_body(name="cube", pos=[-1.5, 0.0, 0.05])
-        body.add_freejoint()
+        body.add_freejoint(name="cube")
         body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.05] * 3, mass=0.6, rgba=[1.0, 0.6, 0.1, 1.0])
     model = spec.compile()
     model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
@@ -155,7 +153,7 @@ def roll_pitch_yaw(q):
     return roll, pitch, yaw
 
 
-class HumanoidForward(MujocoEnv):
+class HumanoidForward(MujocoEnv, gym.utils.EzPickle):
     """RoboschoolHumanoid-v0: walk toward a target 1 km ahead. The base of the flagrun tasks, whose methods follow
     Roboschool's RoboschoolForwardWalkersBase and RoboschoolHumanoid, in its order of calls."""
 
@@ -169,6 +167,7 @@ class HumanoidForward(MujocoEnv):
         camera_name = "track" if camera_name is None and camera_id is None else camera_name
         space = gym.spaces.Box(-5.0, 5.0, (44,), np.float32)
         super().__init__("humanoid.xml", FRAME_SKIP, space, render_mode, width, height, camera_id, camera_name)
+        gym.utils.EzPickle.__init__(self, render_mode, width, height, camera_name, camera_id)  # pickles as arguments
         model = self.model
         joints = [model.joint(name) for name, _ in MOTORS]
         self.qpos_index = np.array([joint.qposadr[0] for joint in joints])
@@ -176,8 +175,7 @@ class HumanoidForward(MujocoEnv):
         low, high = np.array([joint.range for joint in joints]).T
         self.joint_mid = (low + high) / 2
         self.joint_half_range = (high - low) / 2
-        # Bullet put a link's frame at the centre of its body's last geom, and made a massless link at each joint of
-        # a body with joints. Roboschool's torso is the first (its height, speed and angles); its parts are the others.
+        # Roboschool's links: each body's at the centre of its last geom (the torso's first), and one at each joint.
         last_geom = model.body_geomadr + model.body_geomnum - 1
         self.torso = model.body("torso").id
         self.torso_geom = last_geom[self.torso]
@@ -201,9 +199,8 @@ class HumanoidForward(MujocoEnv):
                 z, pitch = (0.45, np.pi / 2) if self.np_random.integers(2) == 0 else (0.25, np.pi * 3 / 2)
         # Roboschool puts the torso's Bullet frame at (0, 0, z), and so 0.12 m higher than the xml's torso origin.
         qpos[3:7] = quaternion(0.0, pitch, yaw)
-        rotation = np.zeros(9)
-        mujoco.mju_quat2Mat(rotation, qpos[3:7])
-        qpos[0:3] = np.array([0.0, 0.0, z]) - rotation.reshape(3, 3) @ self.torso_offset
+        mujoco.mju_rotVecQuat(offset := np.zeros(3), self.torso_offset, qpos[3:7])
+        qpos[0:3] = np.array([0.0, 0.0, z]) - offset
         self.set_state(qpos, np.zeros(self.model.nv))
         self.frame = 0
         self.feet_contact = np.zeros(2)
@@ -240,7 +237,8 @@ class HumanoidForward(MujocoEnv):
         # The torso's velocity turned into the heading's frame; 0.3 brings typical speeds into [-1, 1].
         vx, vy, vz = self.body_velocity
         velocity = [np.cos(yaw) * vx + np.sin(yaw) * vy, -np.sin(yaw) * vx + np.cos(yaw) * vy, vz]
-        more = [self.body_xyz[2] - INITIAL_Z, np.sin(angle_to_target), np.cos(angle_to_target), *(0.3 * np.array(velocity))]
+        height = self.body_xyz[2] - INITIAL_Z
+        more = [height, np.sin(angle_to_target), np.cos(angle_to_target), *(0.3 * np.array(velocity))]
         joints = np.stack([positions, self.joint_speeds], 1).ravel()  # position and speed, joint by joint
         state = np.concatenate([more, [roll, pitch], joints, self.feet_contact])
         return np.clip(state, -5.0, 5.0).astype(np.float32)
@@ -249,7 +247,19 @@ class HumanoidForward(MujocoEnv):
         return self.humanoid_state()
 
     def render(self):
+        """The film's camera follows the body from behind and to the side, and looks past it toward the target."""
+        ground = self.data.geom_xpos[self.torso_geom] * [1, 1, 0]  # below the torso
+        ahead = np.append(self.target, 0.0) - ground
+        ahead /= max(np.linalg.norm(ahead), 1e-6)
+        camera = self.model.camera("track")
+        side = np.cross(ahead, [0.0, 0.0, 1.0])  # to the right, so that the body does not hide the flag
+        camera.pos = ground - CAMERA_BACK * ahead + CAMERA_SIDE * side + [0, 0, CAMERA_UP]
+        look = ground + CAMERA_LOOK * ahead - camera.pos
+        look /= np.linalg.norm(look)
+        right = np.cross(look, [0.0, 0.0, 1.0]) / np.linalg.norm(look[:2])
+        mujoco.mju_mat2Quat(camera.quat, np.stack([right, np.cross(-look, right), -look], 1).ravel())
         mujoco.mj_kinematics(self.model, self.data)  # the flag where calc_state() last moved it
+        mujoco.mj_camlight(self.model, self.data)  # and the camera where it now is
         return super().render()
 
     def calc_potential(self):
@@ -338,11 +348,6 @@ class HumanoidFlagrunHarder(HumanoidFlagrun):
     cube = True
     electricity_cost = ELECTRICITY_COST / 4  # "don't care that much about electricity, just stand up!"
 
-    def __init__(self, **kwargs):
-        super().__init__(**kwargs)
-        cube = self.model.joint(self.model.body("cube").jntadr[0])
-        self.cube_qpos, self.cube_qvel = cube.qposadr[0], cube.dofadr[0]
-
     def task_reset(self):
         super().task_reset()
         self.on_ground_frame_counter = 0
@@ -357,8 +362,8 @@ class HumanoidFlagrunHarder(HumanoidFlagrun):
         start = target + np.array([4.0 * np.cos(angle), 4.0 * np.sin(angle), 1.0])
         velocity = (target - start) * attack_speed / np.linalg.norm(target - start)
         velocity += self.np_random.uniform(-1.0, 1.0, 3)
-        self.data.qpos[self.cube_qpos : self.cube_qpos + 7] = [*start, 1.0, 0.0, 0.0, 0.0]
-        self.data.qvel[self.cube_qvel : self.cube_qvel + 6] = [*velocity, 0.0, 0.0, 0.0]
+        self.data.joint("cube").qpos[:] = [*start, 1.0, 0.0, 0.0, 0.0]
+        self.data.joint("cube").qvel[:] = [*velocity, 0.0, 0.0, 0.0]
         self.cubes_thrown += 1
 
     def alive_bonus(self):

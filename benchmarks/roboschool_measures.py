@@ -68,7 +68,7 @@ def play(checkpoint_path, episodes):
         obs, _ = env.reset(seed=seed)
         row = dict.fromkeys(FIELDS, 0)
         row["seed"] = seed
-        row["started_down"] = int(env.unwrapped.data.qpos[2] < DOWN)
+        row["started_down"] = int(env.unwrapped.body_xyz[2] < DOWN)
         down_since = 0 if row["started_down"] else None
         last_throw = -1000
         speeds = []
@@ -118,7 +118,7 @@ def film(checkpoint_path, rows, video):
     obs, _ = env.reset(seed=seed)
     frames = [env.render()]
     event = None
-    down = env.unwrapped.data.qpos[2] < DOWN
+    down = env.unwrapped.body_xyz[2] < DOWN
     fell = False
     for step in range(1, 10**6):
         obs, _, terminated, truncated, info = env.step(act(obs))
@@ -163,7 +163,8 @@ def summary(rows):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--total-timesteps", type=int, help="the suite's budget whose runs to measure (default: 50M)")
+    parser.add_argument("--suite", default="roboschool", help="roboschool (the earlier rules) or roboschool-body")
+    parser.add_argument("--total-timesteps", type=int, help="the suite's budget whose runs to measure (its default)")
     parser.add_argument("--checkpoint", type=Path, help="measure this checkpoint only, and print it")
     parser.add_argument("--episodes", type=int, default=30, help="deterministic episodes per run (env seeds 1, 2, ...)")
     parser.add_argument("--film", action="store_true", help="also film each run (results/<folder>/video/)")
@@ -173,7 +174,7 @@ def main():
     if args.checkpoint:
         print(summary(play(args.checkpoint, args.episodes)))
         return
-    for job in make_grid("roboschool", total_timesteps=args.total_timesteps):
+    for job in make_grid(args.suite, total_timesteps=args.total_timesteps):
         if job.checkpoint.exists() and job.csv.exists():
             rows = play(job.checkpoint, args.episodes)
             write(job.results_dir / "measures" / f"{job.name}.csv", rows)
