@@ -39,11 +39,11 @@ The rules (each step is 4 physics steps of 0.0165/4 s, an episode 1,000 steps):
 
 Where ours differs from Roboschool, judge the comparison with Figure 4 by these:
 - The engine: MuJoCo (its implicitfast integrator and Newton solver, as Bullet a semi-implicit Euler), not Bullet:
-  contacts, friction and joint limits act differently. To stay stable at this timestep MuJoCo needs a damper (0.5 N m
-  s/rad) and an armature; a step it finds unstable ends the episode as a fall, as a state that was not finite did.
+  contacts, friction (Bullet multiplies two surfaces' 0.8 into 0.64; MuJoCo takes the larger) and joint limits act
+  differently. To stay stable at this timestep MuJoCo needs a damper (0.5 N m s/rad) and an armature; a step it finds
+  unstable ends the episode as a fall, as a state that was not finite did.
 - Bullet put a link's centre of mass at its last geom's centre, with its bounding box's inertia; ours are the geoms'.
-- Random numbers come from gymnasium's generator, so no episode is Roboschool's, draw for draw.
-The flag is a marker (it touches nothing), filmed by a camera that follows the body.
+- Random numbers come from gymnasium's generator, so no episode is Roboschool's, draw for draw. The flag is a marker.
 """
 
 import os
