@@ -561,6 +561,30 @@ def test_roboschool_report_and_readme_give_scores_beside_figure_4_and_what_the_p
     )
 
 
+def test_roboschool_body_report_sets_each_run_beside_the_same_run_on_the_earlier_rules(tmp_path):
+    """A roboschool-body folder's report has each run's score, flags and get-ups beside the same command and seed in
+    the earlier rules' folder at the same budget; runs with no counterpart there get no row."""
+    import roboschool_measures
+
+    results = tmp_path / "results"
+    body, earlier = results / "roboschool-body_100000", results / "roboschool_100000"
+    fake_run(body, "HumanoidFlagrunHarder-v0", "table4-128", 1, 1500.0)
+    fake_run(body, "HumanoidFlagrun-v0", "table4-128", 2, 700.0)  # no counterpart: no row
+    fake_run(earlier, "HumanoidFlagrunHarder-v0", "table4-128", 1, 900.0)
+    zero = dict.fromkeys(roboschool_measures.FIELDS, 0) | {"length": 100, "getup_steps": ""}
+    name = "HumanoidFlagrunHarder-v0__table4-128__seed1.csv"
+    roboschool_measures.write(body / "measures" / name, [zero | dict(seed=1, flags=3, falls=1, getups=1)])
+    roboschool_measures.write(earlier / "measures" / name, [zero | dict(seed=1, flags=1, started_down=1)] * 2)
+    text = report.report(body, results=results)
+    assert "## Roboschool's body against the earlier rules" in text
+    assert "[`roboschool_100000`](../roboschool_100000/report.md)" in text
+    # earlier: 2 episodes of 1 flag, each started down and never got up; body: 3 flags, 1 get-up of 1 fall
+    assert "| HumanoidFlagrunHarder-v0 | table4-128 | 1 | 900.0 | 1,500 | 1.00 | 3.00 | 0 (2) | 1 (1) |" in text
+    section = text.split("against the earlier rules", 1)[1].split("\n\n", 3)[2]  # the table
+    assert section.count("\n| Humanoid") == 1
+    assert "against the earlier rules" not in report.report(earlier, results=results)
+
+
 def test_the_readmes_example_suite_is_one_entry_and_one_module(tmp_path, monkeypatch):
     """benchmarks/README.md's "Adding a suite": its entry of SUITES and its module of reports/ are all that run.py and
     report.py need to run the suite and write its report and README lines."""

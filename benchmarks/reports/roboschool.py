@@ -14,6 +14,8 @@ from reports.stats import group, mean_std
 from suites import COLUMNS
 
 ORDER = 2  # beside the humanoid suite
+# A suite on Roboschool's body -> the suite of the same runs on the earlier rules, whose results the report sets beside.
+EARLIER = {"roboschool-body": "roboschool"}
 RULE = (
     "A run's score is the mean return of its last 100 episodes; a cell is the mean ± sample std over seeds, with the"
     " number of seeds in brackets. Rewards are Roboschool's (per step: +2 alive, progress toward the target in m/s,"
@@ -55,7 +57,7 @@ def tables(folder, runs, reference, results, level="##"):
     ]
     for env, v, setting_runs in settings(folder, runs):
         lines.append("| " + " | ".join([env, v, *score_cells(setting_runs), paper(env, v, reference) or "–"]) + " |")
-    return lines + measures_table(folder, level)
+    return lines + measures_table(folder, level) + rules_table(folder, runs, level)
 
 
 def summary(folder, runs, reference, results):
@@ -127,6 +129,50 @@ def measures_table(folder, level):
             f"| {name.replace('__', ', ')} | {mean('length'):.0f} | {mean('flags'):.2f} | {mean('speed_to_flag'):.2f}"
             f" | {mean('falls'):.2f} ({mean('knockdowns'):.2f}) | {up} |"
         )
+    return lines
+
+
+def earlier_folder(folder):
+    """The folder of the same runs on the earlier rules, at the same budget, or None."""
+    name = suite_name(folder)
+    if name not in EARLIER:
+        return None
+    other = Path(folder).parent / (EARLIER[name] + Path(folder).name.removeprefix(name))
+    return other if other.is_dir() else None
+
+
+def rules_table(folder, runs, level):
+    """Each run beside the same run on the earlier rules: the score and, where both were measured, flags reached an
+    episode and, for FlagrunHarder, the get-ups."""
+    from results import load_runs
+
+    other = earlier_folder(folder)
+    if other is None:
+        return []
+    earlier = {(r.env_id, r.variant, r.seed): r for r in load_runs(other)}
+    measures = (read_measures(folder), read_measures(other))
+    lines = [
+        "",
+        f"{level} Roboschool's body against the earlier rules",
+        "",
+        f"The same command and seed on the earlier rules (gymnasium's body, its joint springs and dampers, the height"
+        f" of MuJoCo's torso origin, the mean of 13 bodies): [`{other.name}`](../{other.name}/report.md). Flags and"
+        " get-ups are the measures above, on each run's own rules.",
+        "",
+        "| env | setting | seed | earlier rules: last 100 | Roboschool's body: last 100 | earlier: flags an episode"
+        " | body: flags an episode | earlier: got up (times down) | body: got up (times down) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for run in runs:
+        before = earlier.get((run.env_id, run.variant, run.seed))
+        if before is None:
+            continue
+        name = f"{run.env_id}__{run.variant}__seed{run.seed}"
+        rows = [m.get(name, []) for m in measures]
+        flags = [f"{sum(float(r['flags']) for r in x) / len(x):.2f}" if x else "–" for x in rows[::-1]]
+        ups = ["{} ({})".format(*got_up(x)) if x and can_get_up(name) else "–" for x in rows[::-1]]
+        cells = [run.env_id, run.variant, str(run.seed), fmt(before.score), fmt(run.score), *flags, *ups]
+        lines.append("| " + " | ".join(cells) + " |")
     return lines
 
 
