@@ -102,8 +102,51 @@ def play(checkpoint_path, episodes):
     return rows
 
 
+def film_pixel(env, point):
+    """Where the film's camera sees a world point, in pixels (u right, v down), by its pinhole projection; None when the
+    point is behind the camera."""
+    camera = env.data.camera("track")
+    seen = camera.xmat.reshape(3, 3).T @ (point - camera.xpos)  # the camera looks along its -z, its y up
+    if seen[2] >= 0:
+        return None
+    focal = env.height / 2 / np.tan(np.radians(env.model.camera("track").fovy[0]) / 2)
+    return np.array([env.width / 2 + focal * seen[0] / -seen[2], env.height / 2 - focal * seen[1] / -seen[2]])
+
+
+def in_frame(env, point):
+    pixel = film_pixel(env, point)
+    return pixel is not None and 0 <= pixel[0] < env.width and 0 <= pixel[1] < env.height
+
+
+def frame_measures(env):
+    """What a frame just rendered shows, by projection (occlusion aside): the share of the frame's height between the
+    head's top and the lowest foot's bottom; whether the flag is within 8 m and in frame (its foot and its ball);
+    whether a cube is in flight and in frame."""
+    data = env.data
+    head = film_pixel(env, data.geom("head").xpos + [0, 0, 0.09])
+    feet = film_pixel(
+        env, min(data.geom("right_foot").xpos, data.geom("left_foot").xpos, key=lambda p: p[2]) - [0, 0, 0.075]
+    )
+    span = abs(head[1] - feet[1]) / env.height if head is not None and feet is not None else 0.0
+    flag = data.mocap_pos[0]
+    near = np.linalg.norm(flag[:2] - env.body_xyz[:2]) < 8.0
+    flag_seen = near and in_frame(env, flag) and in_frame(env, flag + [0, 0, 1.5])
+    flying = env.cube and data.body("cube").xpos[2] > 0.1
+    return dict(
+        body_span=span,
+        flag_near=near,
+        flag_seen=flag_seen,
+        cube_flying=flying,
+        cube_seen=flying and in_frame(env, data.body("cube").xpos),
+    )
+
+
+FILM_FIELDS = "frames body_span_median body_span_p5 flag_near flag_seen cube_flying cube_seen".split()
+
+
 def film(checkpoint_path, rows, video):
-    """Film the first measured episode that shows the task's event (see the docstring); returns its seed."""
+    """Film the first measured episode that shows the task's event (see the docstring); returns its seed. Beside the
+    video, <video>.csv says what its frames show (frame_measures: the body's span, the flag and the cube in sight)."""
     import os
 
     import gymnasium as gym
@@ -117,12 +160,14 @@ def film(checkpoint_path, rows, video):
     env = gym.make(env_id, render_mode="rgb_array", width=512, height=384)
     obs, _ = env.reset(seed=seed)
     frames = [env.render()]
+    shown = [frame_measures(env.unwrapped)]
     event = None
     down = env.unwrapped.body_xyz[2] < DOWN
     fell = False
     for step in range(1, 10**6):
         obs, _, terminated, truncated, info = env.step(act(obs))
         frames.append(env.render())
+        shown.append(frame_measures(env.unwrapped))
         if harder:  # the first get-up after a fall (not from a start on the ground)
             fell = fell or (not down and info["torso_z"] < DOWN)
             if fell and down and info["torso_z"] >= DOWN and event is None:
@@ -137,6 +182,15 @@ def film(checkpoint_path, rows, video):
     iio.imwrite(video, np.stack(frames), fps=30, codec="libx264")
     at = min(len(frames) - 1, event + 30) if event is not None else len(frames) // 2
     iio.imwrite(video.with_suffix(".png"), frames[at])
+    spans = [f["body_span"] for f in shown]
+    counts = {key: sum(f[key] for f in shown) for key in ("flag_near", "flag_seen", "cube_flying", "cube_seen")}
+    with open(video.with_suffix(".csv"), "w", newline="") as f:
+        writer = csv.DictWriter(f, FILM_FIELDS)
+        writer.writeheader()
+        row = dict(
+            frames=len(shown), body_span_median=f"{np.median(spans):.3f}", body_span_p5=f"{np.percentile(spans, 5):.3f}"
+        )
+        writer.writerow(row | counts)
     return seed
 
 

@@ -14,6 +14,9 @@ mujoco = pytest.importorskip("mujoco")
 sys.path.insert(0, str(ROOT))
 import roboschool_humanoid as rh  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import roboschool_measures as measures  # noqa: E402
+
 TASKS = ["HumanoidForward", "HumanoidFlagrun", "HumanoidFlagrunHarder"]
 DT = 0.0165
 BODIES = "torso lwaist pelvis right_thigh right_shin right_foot left_thigh left_shin left_foot".split()
@@ -428,20 +431,21 @@ def test_the_same_episode_from_the_same_seed(task):
     np.testing.assert_array_equal(episodes[0], episodes[1])
 
 
-def film_pixel(env, point):
-    """Where the film's camera sees a point, in pixels (u right, v down; the pinhole camera of its fovy), or None when
-    the point is behind it."""
-    camera = env.data.camera("track")
-    seen = camera.xmat.reshape(3, 3).T @ (point - camera.xpos)  # the camera looks along its -z, its y up
-    if seen[2] >= 0:
-        return None
-    focal = env.height / 2 / np.tan(np.radians(env.model.camera("track").fovy[0]) / 2)
-    return env.width / 2 + focal * seen[0] / -seen[2], env.height / 2 - focal * seen[1] / -seen[2]
-
-
-def in_frame(env, point):
-    pixel = film_pixel(env, point)
-    return pixel is not None and 0 <= pixel[0] < env.width and 0 <= pixel[1] < env.height
+def test_the_films_projection_lands_where_the_renderer_draws_the_flag(monkeypatch):
+    """The measures' pinhole projection of the flag's ball, checked against the rendered frame: red pixels around the
+    projected point, none where it projects out of frame."""
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    env = gym.make("roboschool_humanoid:HumanoidFlagrun-v0", render_mode="rgb_array", width=160, height=120).unwrapped
+    env.reset(seed=2)
+    for offset in ([4.0, 1.0], [6.0, -2.0]):
+        env.target = body_xy(env) + offset
+        env.data.mocap_pos[0, :2] = env.target
+        frame = env.render()
+        u, v = np.round(measures.film_pixel(env, env.data.mocap_pos[0] + [0, 0, 1.5])).astype(int)
+        red = (frame[..., 0] > 150) & (frame[..., 1] < 80) & (frame[..., 2] < 80)
+        assert red[max(v - 2, 0) : v + 3, max(u - 2, 0) : u + 3].sum() >= 3, offset
+        assert red.sum() < 10 * red[max(v - 8, 0) : v + 40, max(u - 8, 0) : u + 9].sum()  # the red is the flag's
+    env.close()
 
 
 def test_the_film_shows_the_body_large_the_flag_within_8_m_and_a_thrown_cube(monkeypatch):
@@ -454,19 +458,24 @@ def test_the_film_shows_the_body_large_the_flag_within_8_m_and_a_thrown_cube(mon
     env.render()  # places the camera
     head = env.data.geom("head").xpos + [0, 0, 0.09]
     feet = min(env.data.geom("right_foot").xpos, env.data.geom("left_foot").xpos, key=lambda p: p[2]) - [0, 0, 0.075]
-    assert torso_z(env) > 1.3 and abs(film_pixel(env, head)[1] - film_pixel(env, feet)[1]) >= 0.2 * env.height
+    assert (
+        torso_z(env) > 1.3
+        and abs(measures.film_pixel(env, head)[1] - measures.film_pixel(env, feet)[1]) >= 0.2 * env.height
+    )
     for angle in np.linspace(0, 2 * np.pi, 8, endpoint=False):
         env.target = body_xy(env) + 8.0 * np.array([np.cos(angle), np.sin(angle)])
         env.data.mocap_pos[0, :2] = env.target
         env.render()
-        assert in_frame(env, env.data.mocap_pos[0] + [0, 0, 1.5]) and in_frame(env, env.data.mocap_pos[0]), angle
+        assert measures.in_frame(env, env.data.mocap_pos[0] + [0, 0, 1.5]) and measures.in_frame(
+            env, env.data.mocap_pos[0]
+        ), angle
     env.frame, env.on_ground_frame_counter = 120, 0
     in_flight = []
     for _ in range(12):
         env.step(np.zeros(17))
         env.render()
         cube = env.data.body("cube").xpos
-        in_flight.append(cube[2] > 0.1 and in_frame(env, cube))
+        in_flight.append(cube[2] > 0.1 and measures.in_frame(env, cube))
     assert env.cubes_thrown == 1 and any(in_flight)
     env.close()
 

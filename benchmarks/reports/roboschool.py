@@ -57,7 +57,7 @@ def tables(folder, runs, reference, results, level="##"):
     ]
     for env, v, setting_runs in settings(folder, runs):
         lines.append("| " + " | ".join([env, v, *score_cells(setting_runs), paper(env, v, reference) or "–"]) + " |")
-    return lines + measures_table(folder, level) + rules_table(folder, runs, level)
+    return lines + measures_table(folder, level) + film_table(folder, level) + rules_table(folder, runs, level)
 
 
 def summary(folder, runs, reference, results):
@@ -128,6 +128,35 @@ def measures_table(folder, level):
         lines.append(
             f"| {name.replace('__', ', ')} | {mean('length'):.0f} | {mean('flags'):.2f} | {mean('speed_to_flag'):.2f}"
             f" | {mean('falls'):.2f} ({mean('knockdowns'):.2f}) | {up} |"
+        )
+    return lines
+
+
+def film_table(folder, level):
+    """What each film's frames show (video/<run>.csv, by roboschool_measures.py --film), where it says."""
+    films = sorted((Path(folder) / "video").glob("*.csv"))
+    if not films:
+        return []
+    lines = [
+        "",
+        f"{level} What the films show",
+        "",
+        "Each frame of each film, by the camera's projection (a part hidden behind another still counts): the body's"
+        " height in the frame (head to feet, as a share of the frame's), the flag in frame when it is within 8 m of"
+        " the body, and the cube in frame while it flies.",
+        "",
+        "| film | frames | body's height in frame: median (5th percentile) | flag within 8 m: frames in frame"
+        " | cube in flight: frames in frame |",
+        "|---|---|---|---|---|",
+    ]
+    for path in films:
+        with open(path) as f:
+            (row,) = csv.DictReader(f)
+        flag = f"{row['flag_seen']} of {row['flag_near']}"
+        cube = f"{row['cube_seen']} of {row['cube_flying']}" if "FlagrunHarder" in path.stem else "–"
+        span = f"{float(row['body_span_median']):.2f} ({float(row['body_span_p5']):.2f})"
+        lines.append(
+            f"| [{path.stem.replace('__', ', ')}](video/{path.stem}.mp4) | {row['frames']} | {span} | {flag} | {cube} |"
         )
     return lines
 
