@@ -38,10 +38,9 @@ The rules (each step is 4 physics steps of 0.0165/4 s, an episode 1,000 steps):
   rises each step below 0.8 m and falls each step above).
 
 Where ours differs from Roboschool, judge the comparison with Figure 4 by these:
-- The engine: MuJoCo (its implicitfast integrator and Newton solver, as Bullet a semi-implicit Euler), not Bullet:
-  contacts, friction (Bullet multiplies two surfaces' 0.8 into 0.64; MuJoCo takes the larger) and joint limits act
-  differently. To stay stable at this timestep MuJoCo needs a damper (0.5 N m s/rad) and an armature; a step it finds
-  unstable ends the episode as a fall, as a state that was not finite did.
+- The engine: MuJoCo (implicitfast and Newton; Bullet too steps a semi-implicit Euler): contacts, joint limits and
+  friction (Bullet multiplies two 0.8s into 0.64; MuJoCo takes the larger) act differently. MuJoCo needs a damper (0.5
+  N m s/rad) and an armature to stay stable; a step it finds unstable ends the episode as a fall.
 - Bullet put a link's centre of mass at its last geom's centre, with its bounding box's inertia; ours are the geoms'.
 - Random numbers come from gymnasium's generator, so no episode is Roboschool's, draw for draw. The flag is a marker.
 """
@@ -73,8 +72,8 @@ INITIAL_Z = 0.8  # the state's height is the torso's above this
 FLAG_HALF = np.array([105 * 0.25 * 0.5, 50 * 0.25 * 0.5])  # x, y
 FLAG_TIMEOUT = 200
 CAMERA_BACK, CAMERA_SIDE, CAMERA_UP, CAMERA_LOOK = 3.5, 1.5, 2.0, 3.0  # m: the film's camera from the body, its aim
-# MuJoCo's warnings of an unstable simulation, after each of which it resets the state to the model's.
-UNSTABLE = [mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL, mujoco.mjtWarning.mjWARN_BADQACC]
+# MuJoCo's warnings of an unstable simulation (their indices), after each of which it resets the state to the model's.
+UNSTABLE = [int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{what}")) for what in ("QPOS", "QVEL", "QACC")]
 BODIES = "torso lwaist pelvis right_thigh right_shin right_foot left_thigh left_shin left_foot".split()
 BODIES += "right_upper_arm right_lower_arm left_upper_arm left_lower_arm".split()
 
@@ -230,7 +229,8 @@ class HumanoidForward(MujocoEnv, gym.utils.EzPickle):
         roll, pitch, yaw = self.body_rpy = roll_pitch_yaw(qpos[3:7])
         # The torso frame's velocity: the free joint's (of the torso's origin), plus the spin's share at the offset.
         spin = data.xmat[self.torso].reshape(3, 3) @ qvel[3:6]
-        self.body_velocity = qvel[0:3] + np.cross(spin, torso - data.xpos[self.torso])
+        mujoco.mju_cross(spun := np.zeros(3), spin, torso - data.xpos[self.torso])
+        self.body_velocity = qvel[0:3] + spun
         to_target = self.target - self.body_xyz[:2]
         self.walk_target_dist = np.linalg.norm(to_target)
         angle_to_target = np.arctan2(to_target[1], to_target[0]) - yaw
@@ -273,12 +273,12 @@ class HumanoidForward(MujocoEnv, gym.utils.EzPickle):
     def feet_collision_cost(self):
         """Sets each foot's floor contact (read by the next step's state) and returns -1 for each foot that touches
         anything else: the other leg, the cube."""
-        pairs = self.data.contact.geom
+        pairs = self.data.contact.geom.tolist()
         cost = 0.0
         for i, foot in enumerate(self.foot_geoms):
-            touched = np.concatenate([pairs[pairs[:, 0] == foot, 1], pairs[pairs[:, 1] == foot, 0]])
-            self.feet_contact[i] = float(np.any(touched == self.floor))
-            cost += FOOT_COLLISION_COST * np.any(touched != self.floor)
+            touched = {one if two == foot else two for one, two in pairs if foot in (one, two)}
+            self.feet_contact[i] = float(self.floor in touched)
+            cost += FOOT_COLLISION_COST * bool(touched - {self.floor})
         return cost
 
     def step(self, action):
@@ -286,9 +286,9 @@ class HumanoidForward(MujocoEnv, gym.utils.EzPickle):
         if a.shape != (len(MOTORS),):  # as gymnasium's Humanoid-v5 refuses it: no silent broadcast to 17 motors
             raise ValueError(f"Action dimension mismatch. Expected {(len(MOTORS),)}, found {a.shape}")
         self.data.ctrl[:] = np.clip(a, -1.0, 1.0)  # torque = 0.41 x power x the clipped action (the motors' gear)
-        resets = sum(self.data.warning[w].number for w in UNSTABLE)
+        resets = self.data.warning.number[UNSTABLE].sum()
         mujoco.mj_step(self.model, self.data, nstep=FRAME_SKIP)
-        diverged = sum(self.data.warning[w].number for w in UNSTABLE) > resets
+        diverged = self.data.warning.number[UNSTABLE].sum() > resets
         mujoco.mj_kinematics(self.model, self.data)  # the bodies' positions after the last physics step
         self.flag_moved = False
         state = self.calc_state()
