@@ -18,6 +18,7 @@ their 13) and "continuous detail N" (of their 9 for continuous actions).
 
 import atexit
 import contextlib
+import importlib
 import itertools
 import math
 import os
@@ -235,6 +236,11 @@ def make_envs(args, video_dir, video_prefix):
 
     rank, world_size = rank_and_size()
     n = args.num_envs // world_size  # torchrun: this rank's envs are rank n, ..., rank n + n - 1 of the N
+    module, _, env_name = args.env_id.rpartition(":")
+    if module:  # a module:id, whose module registers the id
+        importlib.import_module(module)
+    if gym.spec(env_name).vector_entry_point and not args.capture_video:  # the env's own N-env implementation, with
+        return gym.make_vec(args.env_id, n, vectorization_mode="vector_entry_point")  # the same episodes as N envs'
     env_fns = [
         lambda i=i: make_env(args.env_id, args.capture_video and i == 0, video_dir, video_prefix)
         for i in range(rank * n, rank * n + n)

@@ -2,13 +2,15 @@
 
 The paper ran RoboschoolHumanoid, RoboschoolHumanoidFlagrun and RoboschoolHumanoidFlagrunHarder: Roboschool's first
 release (openai/roboschool at 911f7cd, May 2017, its "-v0" tasks) on its own Bullet build, which no longer installs.
-This module rebuilds them on MuJoCo with that commit's rules and body, and registers them with gymnasium. No script
-imports it: gymnasium's `module:id` form loads it by name, so
+This module rebuilds them on MuJoCo with that commit's rules and body, and registers them with gymnasium; the ids drop
+"Roboschool", whose engine this is not. No script imports it: gymnasium's `module:id` form loads it by name, so
 
     python ppo_continuous.py --env-id roboschool_humanoid:HumanoidFlagrun-v0
     torchrun --standalone --nproc-per-node 2 ppo_continuous.py --env-id roboschool_humanoid:HumanoidFlagrunHarder-v0
 
-The ids drop "Roboschool", whose engine this is not, and keep "-v0": the rules of its v0 tasks (v1 changed them).
+Each id has its own vector env, which ppo_continuous.py takes through gym.make_vec: the rules computed once over N
+bodies of one model, each in its own MjData, with the same episodes as N single envs of the same seeds. A single env
+is the case N = 1 of the same code.
 
 The body is humanoid_symmetric.xml as Roboschool's Bullet (olegklimov/bullet3, May 2017) read it, made with MjSpec from
 gymnasium's humanoid.xml: friction 0.8 on every geom, hips to -120 degrees, no joint springs, no contact between a part
@@ -152,22 +154,19 @@ def roll_pitch_yaw(q):
     return roll, pitch, yaw
 
 
-class HumanoidForward(MujocoEnv, gym.utils.EzPickle):
-    """RoboschoolHumanoid-v0: walk toward a target 1 km ahead. The base of the flagrun tasks, whose methods follow
-    Roboschool's RoboschoolForwardWalkersBase and RoboschoolHumanoid, in its order of calls."""
+class Forward:
+    """RoboschoolHumanoid-v0, walk toward a target 1 km ahead, for N bodies of one model at once, each in its own MjData
+    with its own random generator: each rule is one array operation over the bodies in `rows`. The methods follow
+    Roboschool's RoboschoolForwardWalkersBase and RoboschoolHumanoid, in its order of calls; a single env is N = 1."""
 
-    metadata = {"render_modes": ["human", "rgb_array", "depth_array", "rgbd_tuple"], "render_fps": round(1 / DT)}
     random_yaw = False  # Flagrun: start facing a random heading
     random_lean = False  # FlagrunHarder: half the starts lie on the front or the back
     cube = False  # FlagrunHarder: a cube is thrown at the body
     electricity_cost = ELECTRICITY_COST
 
-    def __init__(self, render_mode=None, width=480, height=480, camera_name=None, camera_id=None):
-        camera_name = "track" if camera_name is None and camera_id is None else camera_name
-        space = gym.spaces.Box(-5.0, 5.0, (44,), np.float32)
-        super().__init__("humanoid.xml", FRAME_SKIP, space, render_mode, width, height, camera_id, camera_name)
-        gym.utils.EzPickle.__init__(self, render_mode, width, height, camera_name, camera_id)  # pickles as arguments
-        model = self.model
+    def __init__(self, model, datas):
+        self.model, self.datas = model, datas
+        self.rngs = [None] * len(datas)  # each body's generator, gymnasium's np_random, set by its env at a reset
         joints = [model.joint(name) for name, _ in MOTORS]
         self.qpos_index = np.array([joint.qposadr[0] for joint in joints])
         self.qvel_index = np.array([joint.dofadr[0] for joint in joints])
@@ -183,73 +182,261 @@ class HumanoidForward(MujocoEnv, gym.utils.EzPickle):
         self.joint_ids = np.array([joint.id for joint in joints])
         self.foot_geoms = [model.geom("right_foot").id, model.geom("left_foot").id]
         self.floor = model.geom("floor").id
+        n = len(datas)  # what Roboschool keeps on its env, a row a body:
+        self.frame, self.flags_reached, self.cubes_thrown, self.joints_at_limit = np.zeros((4, n), int)
+        self.potential, self.walk_target_dist = np.zeros((2, n))
+        self.feet_contact, self.target = np.zeros((2, n, 2))
+        self.body_xyz, self.body_velocity = np.zeros((2, n, 3))
+        self.joint_speeds = np.zeros((n, len(MOTORS)))
+        self.flag_moved = np.zeros(n, bool)
 
-    def _initialize_simulation(self):
-        model = humanoid_model(self.cube, self.width, self.height)
-        return model, mujoco.MjData(model)
-
-    def reset_model(self):
-        qpos = self.init_qpos.copy()
-        qpos[self.qpos_index] = self.np_random.uniform(-0.1, 0.1, len(MOTORS))
+    def reset(self, i):
+        """Body i's start, with its generator: joints uniform in +-0.1 rad, at rest; returns its state."""
+        rng, data = self.rngs[i], self.datas[i]
+        mujoco.mj_resetData(self.model, data)  # the model's pose, at rest
+        qpos = data.qpos
+        qpos[self.qpos_index] = rng.uniform(-0.1, 0.1, len(MOTORS))
         z, pitch, yaw = 1.4, 0.0, 0.0  # the xml's pose: upright, facing x
         if self.random_yaw:
-            yaw = self.np_random.uniform(-3.14, 3.14)
-            if self.random_lean and self.np_random.integers(2) == 0:
-                z, pitch = (0.45, np.pi / 2) if self.np_random.integers(2) == 0 else (0.25, np.pi * 3 / 2)
+            yaw = rng.uniform(-3.14, 3.14)
+            if self.random_lean and rng.integers(2) == 0:
+                z, pitch = (0.45, np.pi / 2) if rng.integers(2) == 0 else (0.25, np.pi * 3 / 2)
         # Roboschool puts the torso's Bullet frame at (0, 0, z), and so 0.12 m higher than the xml's torso origin.
         qpos[3:7] = quaternion(0.0, pitch, yaw)
         mujoco.mju_rotVecQuat(offset := np.zeros(3), self.torso_offset, qpos[3:7])
         qpos[0:3] = np.array([0.0, 0.0, z]) - offset
-        self.set_state(qpos, np.zeros(self.model.nv))
-        self.frame = 0
-        self.feet_contact = np.zeros(2)
-        self.target = np.array([1e3, 0.0])
-        self.cubes_thrown = self.flags_reached = 0
-        self.task_reset()
-        state = self.calc_state()
-        self.potential = self.calc_potential()
-        self.flags_reached = 0  # a flag placed within reach of the start is not one reached
+        mujoco.mj_forward(self.model, data)
+        self.frame[i] = 0
+        self.feet_contact[i] = 0.0
+        self.target[i] = [1e3, 0.0]
+        self.cubes_thrown[i] = self.flags_reached[i] = 0
+        self.task_reset(i)
+        rows = np.array([i])
+        state = self.calc_state(rows)[0]
+        self.potential[i] = self.calc_potential(rows)[0]
+        self.flags_reached[i] = 0  # a flag placed within reach of the start is not one reached
         return state
 
-    def task_reset(self):
-        self.data.mocap_pos[0, :2] = self.target
+    def task_reset(self, i):
+        self.datas[i].mocap_pos[0, :2] = self.target[i]
 
-    def humanoid_state(self):
-        """The 44 numbers of the state; also keeps what the reward reads (joint speeds, joints at limit, the body's
-        position and angles, the distance to the target)."""
-        data = self.data
-        qpos, qvel = data.qpos, data.qvel
-        positions = (qpos[self.qpos_index] - self.joint_mid) / self.joint_half_range
-        self.joint_speeds = 0.1 * qvel[self.qvel_index]  # 10 rad/s is 1
-        self.joints_at_limit = np.count_nonzero(np.abs(positions) > 0.99)
+    def humanoid_state(self, rows):
+        """The 44 numbers of the state of each body in `rows`; also keeps what the reward reads (joint speeds, joints
+        at limit, the body's position, speed and angles, the distance to the target)."""
+        datas = [self.datas[i] for i in rows]
+        qpos = np.stack([data.qpos for data in datas])
+        qvel = np.stack([data.qvel for data in datas])
+        geoms = np.stack([data.geom_xpos for data in datas])
+        positions = (qpos[:, self.qpos_index] - self.joint_mid) / self.joint_half_range
+        self.joint_speeds[rows] = 0.1 * qvel[:, self.qvel_index]  # 10 rad/s is 1
+        self.joints_at_limit[rows] = np.count_nonzero(np.abs(positions) > 0.99, axis=1)
         # The body's x, y: the mean of its parts' (29 links); its z: the torso's, "more informative than the mean".
-        torso = data.geom_xpos[self.torso_geom]
-        x, y = np.concatenate([data.geom_xpos[self.part_geoms], data.xanchor[self.joint_ids]])[:, :2].mean(0)
-        self.body_xyz = np.array([x, y, torso[2]])
-        roll, pitch, yaw = self.body_rpy = roll_pitch_yaw(qpos[3:7])
+        torso = geoms[:, self.torso_geom]
+        anchors = np.stack([data.xanchor[self.joint_ids] for data in datas])
+        x, y = np.concatenate([geoms[:, self.part_geoms], anchors], 1)[..., :2].mean(1).T
+        self.body_xyz[rows] = np.stack([x, y, torso[:, 2]], 1)
+        roll, pitch, yaw = roll_pitch_yaw(qpos[:, 3:7].T)
         # The torso frame's velocity: the free joint's (of the torso's origin), plus the spin's share at the offset.
-        spin = data.xmat[self.torso].reshape(3, 3) @ qvel[3:6]
-        mujoco.mju_cross(spun := np.zeros(3), spin, torso - data.xpos[self.torso])
-        self.body_velocity = qvel[0:3] + spun
-        to_target = self.target - self.body_xyz[:2]
-        self.walk_target_dist = np.linalg.norm(to_target)
-        angle_to_target = np.arctan2(to_target[1], to_target[0]) - yaw
+        turn = np.stack([data.xmat[self.torso].reshape(3, 3) for data in datas])
+        spin = (turn * qvel[:, None, 3:6]).sum(2)
+        arm = torso - np.stack([data.xpos[self.torso] for data in datas])
+        self.body_velocity[rows] = qvel[:, 0:3] + np.cross(spin, arm)
+        to_target = self.target[rows] - self.body_xyz[rows, :2]
+        self.walk_target_dist[rows] = np.linalg.norm(to_target, axis=1)
+        angle_to_target = np.arctan2(to_target[:, 1], to_target[:, 0]) - yaw
         # The torso's velocity turned into the heading's frame; 0.3 brings typical speeds into [-1, 1].
-        vx, vy, vz = self.body_velocity
+        vx, vy, vz = self.body_velocity[rows].T
         velocity = [np.cos(yaw) * vx + np.sin(yaw) * vy, -np.sin(yaw) * vx + np.cos(yaw) * vy, vz]
-        height = self.body_xyz[2] - INITIAL_Z
+        height = self.body_xyz[rows, 2] - INITIAL_Z
         more = [height, np.sin(angle_to_target), np.cos(angle_to_target), *(0.3 * np.array(velocity))]
-        joints = np.stack([positions, self.joint_speeds], 1).ravel()  # position and speed, joint by joint
-        state = np.concatenate([more, [roll, pitch], joints, self.feet_contact])
+        joints = np.stack([positions, self.joint_speeds[rows]], 2).reshape(len(rows), -1)  # joint by joint
+        state = np.concatenate([np.stack([*more, roll, pitch], 1), joints, self.feet_contact[rows]], 1)
         return np.clip(state, -5.0, 5.0).astype(np.float32)
 
-    def calc_state(self):
-        return self.humanoid_state()
+    def calc_state(self, rows):
+        return self.humanoid_state(rows)
+
+    def calc_potential(self, rows):
+        """Progress is the change of this potential: a step toward the target of speed x dt earns speed (m/s)."""
+        return -self.walk_target_dist[rows] / DT
+
+    def alive_bonus(self, rows):
+        # 2, not 1: the 17 joints' electricity cost from the policy's noise alone is large, and living must pay.
+        return np.where(self.body_xyz[rows, 2] > 0.78, 2.0, -1.0)
+
+    def feet_collision_cost(self, i):
+        """Body i's feet's floor contacts (for the next step's state), and -1 for each that touches anything else."""
+        pairs = self.datas[i].contact.geom.tolist()
+        cost = 0.0
+        for side, foot in enumerate(self.foot_geoms):
+            touched = {one if two == foot else two for one, two in pairs if foot in (one, two)}
+            self.feet_contact[i, side] = float(self.floor in touched)
+            cost += FOOT_COLLISION_COST * bool(touched - {self.floor})
+        return cost
+
+    def step(self, actions):
+        """Each body's step under its action: (states, rewards, terminations, the reward's terms and the rest)."""
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (len(self.datas), len(MOTORS)):  # no silent broadcast to 17 motors or to N bodies
+            raise ValueError(f"Action dimension mismatch. Expected {(len(self.datas), len(MOTORS))}, found {a.shape}")
+        diverged = np.zeros(len(self.datas), bool)
+        for i, data in enumerate(self.datas):
+            data.ctrl[:] = np.clip(a[i], -1.0, 1.0)  # torque = 0.41 x power x the clipped action (the motors' gear)
+            resets = data.warning.number[UNSTABLE].sum()
+            mujoco.mj_step(self.model, data, nstep=FRAME_SKIP)
+            diverged[i] = data.warning.number[UNSTABLE].sum() > resets
+            mujoco.mj_kinematics(self.model, data)  # the bodies' positions after the last physics step
+        rows = np.arange(len(self.datas))
+        self.flag_moved[:] = False
+        state = self.calc_state(rows)
+        alive = self.alive_bonus(rows)
+        potential_old = self.potential.copy()
+        self.potential = self.calc_potential(rows)
+        terms = {
+            "alive": alive,
+            "progress": self.potential - potential_old,
+            "electricity": self.electricity_cost * np.abs(a * self.joint_speeds).mean(1)
+            + STALL_TORQUE_COST * np.square(a).mean(1),
+            "joints_at_limit": JOINTS_AT_LIMIT_COST * self.joints_at_limit,
+            "feet_collision": np.array([self.feet_collision_cost(i) for i in rows]),
+        }
+        # MuJoCo found the physics unstable and reset the body: a fall, with nothing paid for the jump
+        terms = {name: np.where(diverged, -1.0 if name == "alive" else 0.0, value) for name, value in terms.items()}
+        self.frame += 1
+        terminated = (terms["alive"] < 0) | ~np.isfinite(state).all(1)
+        info = {f"reward_{name}": value for name, value in terms.items()}
+        info |= {"flags_reached": self.flags_reached.copy(), "flag_moved": self.flag_moved.copy()}
+        info |= {"cubes_thrown": self.cubes_thrown.copy(), "distance_to_target": self.walk_target_dist.copy()}
+        info |= {"torso_z": self.body_xyz[:, 2].copy()}
+        return state, sum(terms.values()), terminated, info
+
+
+class Flagrun(Forward):
+    """RoboschoolHumanoidFlagrun-v0: run to a flag that moves when reached and every 200 steps."""
+
+    random_yaw = True
+
+    def __init__(self, model, datas):
+        super().__init__(model, datas)
+        self.flag_timeout = np.zeros(len(datas), int)
+
+    def task_reset(self, i):
+        self.flag_reposition(i)
+
+    def flag_reposition(self, i):
+        self.target[i] = self.rngs[i].uniform(-FLAG_HALF, FLAG_HALF)
+        self.datas[i].mocap_pos[0, :2] = self.target[i]
+        self.flag_timeout[i] = FLAG_TIMEOUT
+
+    def calc_state(self, rows):
+        self.flag_timeout[rows] -= 1
+        state = self.humanoid_state(rows)
+        moves = (self.walk_target_dist[rows] < 1) | (self.flag_timeout[rows] <= 0)
+        if moves.any():
+            moved = rows[moves]
+            self.flags_reached[moved] += self.walk_target_dist[moved] < 1
+            for i in moved:
+                self.flag_reposition(i)
+            self.flag_moved[moved] = True
+            state[moves] = self.humanoid_state(moved)  # against the new flag
+            self.potential[moved] = self.calc_potential(moved)  # so that the move pays no jump
+        return state
+
+
+class FlagrunHarder(Flagrun):
+    """RoboschoolHumanoidFlagrunHarder-v0: Flagrun, starting half the time on the ground, pelted by a cube, paid for
+    standing up and not for crawling."""
+
+    random_lean = True
+    cube = True
+    electricity_cost = ELECTRICITY_COST / 4  # "don't care that much about electricity, just stand up!"
+
+    def __init__(self, model, datas):
+        super().__init__(model, datas)
+        self.on_ground_frame_counter = np.zeros(len(datas), int)
+        self.crawl_start_potential = np.full(len(datas), np.nan)  # nan: not crawling
+        self.crawl_ignored_potential = np.zeros(len(datas))
+
+    def task_reset(self, i):
+        super().task_reset(i)
+        self.on_ground_frame_counter[i] = 0
+        self.crawl_start_potential[i] = np.nan
+        self.crawl_ignored_potential[i] = 0.0
+
+    def throw_cube(self, i):
+        """The cube, from 4 m away at a random angle and 1 m up, at 20-30 m/s toward where the torso will be."""
+        rng = self.rngs[i]
+        angle = rng.uniform(-3.14, 3.14)
+        attack_speed = rng.uniform(20.0, 30.0)
+        target = self.body_xyz[i] + self.body_velocity[i] * (4.0 / attack_speed)
+        start = target + np.array([4.0 * np.cos(angle), 4.0 * np.sin(angle), 1.0])
+        velocity = (target - start) * attack_speed / np.linalg.norm(target - start)
+        velocity += rng.uniform(-1.0, 1.0, 3)
+        self.datas[i].joint("cube").qpos[:] = [*start, 1.0, 0.0, 0.0, 0.0]
+        self.datas[i].joint("cube").qvel[:] = [*velocity, 0.0, 0.0, 0.0]
+        self.cubes_thrown[i] += 1
+
+    def alive_bonus(self, rows):
+        counter = self.on_ground_frame_counter
+        for i in rows[(self.frame[rows] % 30 == 0) & (self.frame[rows] > 100) & (counter[rows] == 0)]:
+            self.throw_cube(i)
+        down = self.body_xyz[rows, 2] < 0.8
+        counter[rows] += np.where(down, 1, np.where(counter[rows] > 0, -1, 0))
+        # The episode ends if the body cannot get up within 170 steps.
+        return np.where(counter[rows] < 170, self.potential_leak(rows), -1.0)
+
+    def potential_leak(self, rows):
+        """1 on the ground, up to 2 standing: the alive bonus, seen as what a potential of 100 x this leaks each step
+        with gamma 0.99 ((1 - 0.99) x 200 = 2)."""
+        return np.clip(self.body_xyz[rows, 2], 0.0, 0.8) / 0.8 + 1.0
+
+    def calc_potential(self, rows):
+        flag_running_progress = super().calc_potential(rows)
+        # Crawling: the progress made below 0.8 m is ignored, now and after getting up.
+        down = self.body_xyz[rows, 2] < 0.8
+        start = self.crawl_start_potential[rows]
+        start = np.where(down & np.isnan(start), flag_running_progress - self.crawl_ignored_potential[rows], start)
+        ignored = np.where(down, flag_running_progress - start, self.crawl_ignored_potential[rows])
+        flag_running_progress = np.where(down, start, flag_running_progress - ignored)
+        self.crawl_start_potential[rows] = np.where(down, start, np.nan)
+        self.crawl_ignored_potential[rows] = ignored
+        # Standing up raises the potential by 100: that is why the body would get up.
+        return flag_running_progress + self.potential_leak(rows) * 100
+
+
+class HumanoidEnv(MujocoEnv, gym.utils.EzPickle):
+    """One of the tasks as a gymnasium env: its rules for one body (N = 1), with gymnasium's MuJoCo rendering."""
+
+    metadata = {"render_modes": ["human", "rgb_array", "depth_array", "rgbd_tuple"], "render_fps": round(1 / DT)}
+    rules = Forward
+
+    def __init__(self, render_mode=None, width=480, height=480, camera_name=None, camera_id=None):
+        camera_name = "track" if camera_name is None and camera_id is None else camera_name
+        space = gym.spaces.Box(-5.0, 5.0, (44,), np.float32)
+        super().__init__("humanoid.xml", FRAME_SKIP, space, render_mode, width, height, camera_id, camera_name)
+        gym.utils.EzPickle.__init__(self, render_mode, width, height, camera_name, camera_id)  # pickles as arguments
+        self.bodies = self.rules(self.model, [self.data])
+
+    def _initialize_simulation(self):
+        model = humanoid_model(self.rules.cube, self.width, self.height)
+        return model, mujoco.MjData(model)
+
+    def reset_model(self):
+        self.bodies.rngs[0] = self.np_random
+        return self.bodies.reset(0)
+
+    def step(self, action):
+        if np.shape(action) != (len(MOTORS),):  # as gymnasium's Humanoid-v5 refuses it
+            raise ValueError(f"Action dimension mismatch. Expected {(len(MOTORS),)}, found {np.shape(action)}")
+        state, reward, terminated, info = self.bodies.step(np.asarray(action)[None])
+        if self.render_mode == "human":
+            self.render()
+        return state[0], float(reward[0]), bool(terminated[0]), False, {key: v[0].item() for key, v in info.items()}
 
     def render(self):
         """The film's camera follows the body from behind and to the side, and looks past it toward the target."""
-        ground = self.data.geom_xpos[self.torso_geom] * [1, 1, 0]  # below the torso
-        ahead = np.append(self.target, 0.0) - ground
+        ground = self.data.geom_xpos[self.bodies.torso_geom] * [1, 1, 0]  # below the torso
+        ahead = np.append(self.bodies.target[0], 0.0) - ground
         ahead /= max(np.linalg.norm(ahead), 1e-6)
         camera = self.model.camera("track")
         side = np.cross(ahead, [0.0, 0.0, 1.0])  # to the right, so that the body does not hide the flag
@@ -262,139 +449,61 @@ class HumanoidForward(MujocoEnv, gym.utils.EzPickle):
         mujoco.mj_camlight(self.model, self.data)  # and the camera where it now is
         return super().render()
 
-    def calc_potential(self):
-        """Progress is the change of this potential: a step toward the target of speed x dt earns speed (m/s)."""
-        return -self.walk_target_dist / DT
 
-    def alive_bonus(self):
-        # 2, not 1: the 17 joints' electricity cost from the policy's noise alone is large, and living must pay.
-        return 2.0 if self.body_xyz[2] > 0.78 else -1.0
+class HumanoidVectorEnv(gym.vector.VectorEnv):
+    """N of one task's envs in one: the rules computed once over N bodies of one model, each in its own MjData, with
+    the same episodes as N single envs of the same seeds. As gymnasium's SyncVectorEnv in its SAME_STEP mode: the step
+    that ends an episode returns the next one's first state, and the last one in infos["final_obs"]."""
 
-    def feet_collision_cost(self):
-        """Sets each foot's floor contact (read by the next step's state) and returns -1 for each foot that touches
-        anything else: the other leg, the cube."""
-        pairs = self.data.contact.geom.tolist()
-        cost = 0.0
-        for i, foot in enumerate(self.foot_geoms):
-            touched = {one if two == foot else two for one, two in pairs if foot in (one, two)}
-            self.feet_contact[i] = float(self.floor in touched)
-            cost += FOOT_COLLISION_COST * bool(touched - {self.floor})
-        return cost
+    metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
+    rules = Forward
 
-    def step(self, action):
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (len(MOTORS),):  # as gymnasium's Humanoid-v5 refuses it: no silent broadcast to 17 motors
-            raise ValueError(f"Action dimension mismatch. Expected {(len(MOTORS),)}, found {a.shape}")
-        self.data.ctrl[:] = np.clip(a, -1.0, 1.0)  # torque = 0.41 x power x the clipped action (the motors' gear)
-        resets = self.data.warning.number[UNSTABLE].sum()
-        mujoco.mj_step(self.model, self.data, nstep=FRAME_SKIP)
-        diverged = self.data.warning.number[UNSTABLE].sum() > resets
-        mujoco.mj_kinematics(self.model, self.data)  # the bodies' positions after the last physics step
-        self.flag_moved = False
-        state = self.calc_state()
-        alive = self.alive_bonus()
-        potential_old = self.potential
-        self.potential = self.calc_potential()
-        terms = {
-            "alive": alive,
-            "progress": self.potential - potential_old,
-            "electricity": self.electricity_cost * np.abs(a * self.joint_speeds).mean()
-            + STALL_TORQUE_COST * np.square(a).mean(),
-            "joints_at_limit": JOINTS_AT_LIMIT_COST * self.joints_at_limit,
-            "feet_collision": self.feet_collision_cost(),
-        }
-        if diverged:  # MuJoCo found the physics unstable and reset the body: a fall, with nothing paid for the jump
-            terms = dict.fromkeys(terms, 0.0) | {"alive": -1.0}
-        self.frame += 1
-        terminated = terms["alive"] < 0 or not np.isfinite(state).all()
-        info = {f"reward_{name}": float(value) for name, value in terms.items()}
-        info |= {"flags_reached": self.flags_reached, "flag_moved": self.flag_moved, "cubes_thrown": self.cubes_thrown}
-        info |= {"distance_to_target": self.walk_target_dist, "torso_z": self.body_xyz[2]}
-        if self.render_mode == "human":
-            self.render()
-        return state, float(sum(terms.values())), bool(terminated), False, info
+    def __init__(self, num_envs, max_episode_steps=1000):
+        model = humanoid_model(self.rules.cube, 1, 1)
+        self.bodies = self.rules(model, [mujoco.MjData(model) for _ in range(num_envs)])
+        self.num_envs, self.max_episode_steps = num_envs, max_episode_steps
+        self.elapsed = np.zeros(num_envs, int)
+        self.single_observation_space = gym.spaces.Box(-5.0, 5.0, (44,), np.float32)
+        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (len(MOTORS),), np.float32)
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
+
+    def reset(self, *, seed=None, options=None):
+        seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else seed or [None] * self.num_envs
+        for i, one in enumerate(seeds):
+            if one is not None or self.bodies.rngs[i] is None:
+                self.bodies.rngs[i] = gym.utils.seeding.np_random(one)[0]
+        self.elapsed[:] = 0
+        return np.stack([self.bodies.reset(i) for i in range(self.num_envs)]), {}
+
+    def step(self, actions):
+        state, reward, terminated, info = self.bodies.step(actions)
+        self.elapsed += 1
+        truncated = self.elapsed >= self.max_episode_steps
+        ended = terminated | truncated
+        # The infos as SyncVectorEnv merges them: an env reset in this step has its reset's info (none) and its last
+        # step's in final_info; a mask _key says which envs have each key.
+        infos = {}
+        if ended.any():
+            infos["final_obs"] = np.full(self.num_envs, None, object)
+            last = {key: np.where(ended, value, 0).astype(value.dtype) for key, value in info.items()}
+            infos["final_info"] = last | {f"_{key}": ended.copy() for key in info}
+            infos |= {"_final_obs": ended.copy(), "_final_info": ended.copy()}
+            for i in np.flatnonzero(ended):
+                infos["final_obs"][i] = state[i].copy()
+                state[i] = self.bodies.reset(i)
+            self.elapsed[ended] = 0
+        if not ended.all():
+            infos |= {key: np.where(ended, 0, value).astype(value.dtype) for key, value in info.items()}
+            infos |= {f"_{key}": ~ended for key in info}
+        return state, reward, terminated, truncated, infos
 
 
-class HumanoidFlagrun(HumanoidForward):
-    """RoboschoolHumanoidFlagrun-v0: run to a flag that moves when reached and every 200 steps."""
-
-    random_yaw = True
-
-    def task_reset(self):
-        self.flag_reposition()
-
-    def flag_reposition(self):
-        self.target = self.np_random.uniform(-FLAG_HALF, FLAG_HALF)
-        self.data.mocap_pos[0, :2] = self.target
-        self.flag_timeout = FLAG_TIMEOUT
-
-    def calc_state(self):
-        self.flag_timeout -= 1
-        state = self.humanoid_state()
-        if self.walk_target_dist < 1 or self.flag_timeout <= 0:
-            self.flags_reached += bool(self.walk_target_dist < 1)
-            self.flag_reposition()
-            self.flag_moved = True
-            state = self.humanoid_state()  # against the new flag
-            self.potential = self.calc_potential()  # so that the move pays no jump
-        return state
-
-
-class HumanoidFlagrunHarder(HumanoidFlagrun):
-    """RoboschoolHumanoidFlagrunHarder-v0: Flagrun, starting half the time on the ground, pelted by a cube, paid for
-    standing up and not for crawling."""
-
-    random_lean = True
-    cube = True
-    electricity_cost = ELECTRICITY_COST / 4  # "don't care that much about electricity, just stand up!"
-
-    def task_reset(self):
-        super().task_reset()
-        self.on_ground_frame_counter = 0
-        self.crawl_start_potential = None
-        self.crawl_ignored_potential = 0.0
-
-    def throw_cube(self):
-        """The cube, from 4 m away at a random angle and 1 m up, at 20-30 m/s toward where the torso will be."""
-        angle = self.np_random.uniform(-3.14, 3.14)
-        attack_speed = self.np_random.uniform(20.0, 30.0)
-        target = self.body_xyz + self.body_velocity * (4.0 / attack_speed)
-        start = target + np.array([4.0 * np.cos(angle), 4.0 * np.sin(angle), 1.0])
-        velocity = (target - start) * attack_speed / np.linalg.norm(target - start)
-        velocity += self.np_random.uniform(-1.0, 1.0, 3)
-        self.data.joint("cube").qpos[:] = [*start, 1.0, 0.0, 0.0, 0.0]
-        self.data.joint("cube").qvel[:] = [*velocity, 0.0, 0.0, 0.0]
-        self.cubes_thrown += 1
-
-    def alive_bonus(self):
-        if self.frame % 30 == 0 and self.frame > 100 and self.on_ground_frame_counter == 0:
-            self.throw_cube()
-        if self.body_xyz[2] < 0.8:
-            self.on_ground_frame_counter += 1
-        elif self.on_ground_frame_counter > 0:
-            self.on_ground_frame_counter -= 1
-        # The episode ends if the body cannot get up within 170 steps.
-        return self.potential_leak() if self.on_ground_frame_counter < 170 else -1.0
-
-    def potential_leak(self):
-        """1 on the ground, up to 2 standing: the alive bonus, seen as what a potential of 100 x this leaks each step
-        with gamma 0.99 ((1 - 0.99) x 200 = 2)."""
-        return np.clip(self.body_xyz[2], 0.0, 0.8) / 0.8 + 1.0
-
-    def calc_potential(self):
-        flag_running_progress = super().calc_potential()
-        if self.body_xyz[2] < 0.8:  # crawling: the progress made down here is ignored, now and after getting up
-            if self.crawl_start_potential is None:
-                self.crawl_start_potential = flag_running_progress - self.crawl_ignored_potential
-            self.crawl_ignored_potential = flag_running_progress - self.crawl_start_potential
-            flag_running_progress = self.crawl_start_potential
-        else:
-            flag_running_progress -= self.crawl_ignored_potential
-            self.crawl_start_potential = None
-        # Standing up raises the potential by 100: that is why the body would get up.
-        return flag_running_progress + self.potential_leak() * 100
-
-
-for _name in ("HumanoidForward", "HumanoidFlagrun", "HumanoidFlagrunHarder"):
+# The tasks, each as a gymnasium env (N = 1) and as its own vector env (gym.make_vec), registered under one id.
+for _rules in (Forward, Flagrun, FlagrunHarder):
+    _name = f"Humanoid{_rules.__name__}"
+    globals()[_name] = type(_name, (HumanoidEnv,), {"rules": _rules, "__doc__": _rules.__doc__})
+    globals()[f"{_name}Vector"] = type(f"{_name}Vector", (HumanoidVectorEnv,), {"rules": _rules})
     if f"{_name}-v0" not in gym.registry:
-        gym.register(f"{_name}-v0", entry_point=f"{__name__}:{_name}", max_episode_steps=1000)
+        _entry = f"{__name__}:{_name}"
+        gym.register(f"{_name}-v0", entry_point=_entry, vector_entry_point=f"{_entry}Vector", max_episode_steps=1000)

@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.append(str(ROOT))  # for env ids of a module beside the scripts (roboschool_humanoid:...)
 from common import load_script, replace_between  # noqa: E402
 from results import commit, machine, versions  # noqa: E402
-from suites import TABLE4  # noqa: E402
+from suites import ROBOSCHOOL, TABLE4, TABLE4_128  # noqa: E402
 
 # A suite: its env, our scripts, and their peers.
 # Each run also measures the env alone.
@@ -101,6 +101,19 @@ SUITES = {
         ],
         "settings": "each env alone with random actions in [-1, 1] (Humanoid-v5's own action space: [-0.4, 0.4])",
     },
+    # The same tasks' own vector env (the rules computed once over N bodies) beside a SyncVectorEnv of single envs and
+    # the physics alone, 64 envs each; and training with Table 4 on 2 ranks with either.
+    "roboschool-vector": {
+        "env_id": ROBOSCHOOL[1],
+        "steps": 3 * 128 * 512,  # training: 3 iterations of Table 4's 128 actors; the envs alone: 150 steps of 64
+        "ours": [
+            "torchrun --nproc-per-node 2 ppo_continuous.py +single-envs",
+            "torchrun --nproc-per-node 2 ppo_continuous.py",
+        ],
+        "peers": [],
+        "flags": shlex.join(TABLE4_128) + " --torch-threads 1",
+        "vector": [f"{kind} {task}" for task in ROBOSCHOOL for kind in ("physics", "sync", "vector")],
+    },
 }
 
 
@@ -121,6 +134,15 @@ def measure_ours(case, env_id, steps, suite_flags=""):
 
     script, *flags = case.split()
     module = load_script(script)
+    if "+single-envs" in flags:  # the id's envs as a SyncVectorEnv of single envs, as before it had its own vector env
+        import importlib
+
+        import gymnasium as gym
+
+        flags.remove("+single-envs")
+        module_name, _, name = env_id.rpartition(":")
+        importlib.import_module(module_name)
+        gym.spec(name).vector_entry_point = None
     if "WORLD_SIZE" in os.environ:  # a torchrun case: this process is one rank, as the script's main() makes it
         dist.init_process_group("gloo")
     with tempfile.TemporaryDirectory() as tmp:
@@ -260,6 +282,37 @@ def measure_vector_env(env_id, steps, suite_flags):
     return steps / (time.perf_counter() - start), None
 
 
+def measure_roboschool_vector(case, num_envs=64, steps=150):
+    """64 envs of a roboschool task, stepped with the same random actions: a SyncVectorEnv of single envs, the task's
+    own vector env, or the physics alone: the time that vector env spends in mj_step, on the same steps."""
+    import gymnasium as gym
+    import mujoco
+    import numpy as np
+
+    kind, env_id = case.split()
+    if kind == "sync":
+        envs = gym.vector.SyncVectorEnv(
+            [lambda: gym.make(env_id)] * num_envs, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP
+        )
+    else:
+        envs = gym.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point")
+    envs.reset(seed=list(range(num_envs)))
+    actions = np.clip(np.random.default_rng(1).normal(0.0, 0.3, (steps, num_envs, 17)), -1, 1).astype(np.float32)
+    physics, mj_step = [0.0], mujoco.mj_step
+
+    def timed_mj_step(*args, **kwargs):
+        start = time.perf_counter()
+        mj_step(*args, **kwargs)
+        physics[0] += time.perf_counter() - start
+
+    if kind == "physics":
+        mujoco.mj_step = timed_mj_step
+    start = time.perf_counter()
+    for action in actions:
+        envs.step(action)
+    return steps * num_envs / (physics[0] if kind == "physics" else time.perf_counter() - start), None
+
+
 def measure_env(env_id, steps):
     import gymnasium as gym
 
@@ -296,6 +349,8 @@ def run_worker(case, env_id, steps, suite):
         sps = measure_sb3_ppo_mujoco(env_id, steps, threads=1)
     elif case == "env":
         sps = measure_env(env_id, steps)
+    elif case.split()[0] in ("physics", "sync", "vector"):
+        sps = measure_roboschool_vector(case)
     elif case.startswith("env "):  # an env of an env suite, alone
         sps = measure_env(case.split()[1], steps)
     else:
@@ -362,6 +417,8 @@ def measure_suite(name, steps, repeats):
     env_id = suite["env_id"]
     ours = [case for case in suite["ours"] if (ROOT / next(w for w in case.split() if w.endswith(".py"))).exists()]
     cases = [*ours, *suite["peers"], "env", *(f"env {env}" for env in suite.get("envs", []))]
+    if "vector" in suite:
+        cases = [*ours, *suite["vector"]]
     load_at_start = os.getloadavg()[0]
     samples, firsts = {case: [] for case in cases}, {case: [] for case in cases}
     total, done, start = len(cases) * repeats, 0, time.time()
@@ -376,8 +433,10 @@ def measure_suite(name, steps, repeats):
 
     median = {case: statistics.median(v) for case, v in samples.items()}
     first = {case: statistics.median(v) if None not in v else None for case, v in firsts.items()}
-    peers, env = suite["peers"], median["env"]
     command = "python benchmarks/throughput.py " + " ".join(sys.argv[1:])
+    if "vector" in suite:
+        return vector_table(name, suite, cases, samples, median, steps, repeats, load_at_start, command)
+    peers, env = suite["peers"], median["env"]
     if "envs" in suite:
         return env_table(name, suite, cases, samples, median, steps, repeats, load_at_start, command)
     lines = [
@@ -441,6 +500,29 @@ def provenance_lines(load_at_start, command):
         f"- Versions: {versions(('torch', 'numpy', 'gymnasium', 'mujoco', 'ale-py', 'stable-baselines3'))}",
         f"- Machine: {machine()}",
     ]
+
+
+def vector_table(name, suite, cases, samples, median, steps, repeats, load_at_start, command):
+    """The vector suite's table: training with either envs, then each task's envs alone as a share of its physics."""
+    old, new = suite["ours"]
+    lines = [f"## {name}", "", "| case | median steps/s | samples | ratio |", "|---|---|---|---|"]
+    for case in cases:
+        kind, *rest = case.split()
+        base = old if kind == "torchrun" else f"physics {rest[0]}"
+        ratio = f"{median[case] / median[base]:.2f}" + (f"x `{old}`" if kind == "torchrun" else " of the physics")
+        lines.append(f"| {case} | {median[case]:.0f} | {', '.join(f'{s:.0f}' for s in samples[case])} | {ratio} |")
+    lines += [
+        "",
+        f"- Training: {suite['env_id']} with `{suite['flags']}`, {steps:,} steps per measurement, the steady rate"
+        " (from the first iteration's end to the last's); `+single-envs` makes the envs a SyncVectorEnv of single"
+        " envs, as the script did before the ids had their own vector env.",
+        "- The envs alone: 64 envs, 150 steps of the same random actions (normal, std 0.3, clipped to [-1, 1]):"
+        " `sync` gymnasium's SyncVectorEnv of 64 single envs, `vector` the task's own vector env (`gym.make_vec`),"
+        " `physics` the time that vector env spends in MuJoCo's `mj_step` (4 an env step) on the same steps.",
+        f"- {repeats} measurements of each case, in alternation, each in a fresh process; the median is shown.",
+        *provenance_lines(load_at_start, command),
+    ]
+    return "\n".join(lines) + "\n"
 
 
 def env_table(name, suite, cases, samples, median, steps, repeats, load_at_start, command):

@@ -196,13 +196,14 @@ REACHED = {
     # issue 59, no line: a dash for the return before the first episode ends (2 characters) and, in the MuJoCo
     # scripts, a module:id whose module is not found refused in one line (15); --compile under torchrun refused in
     # one line (2 lines and 120 characters a script: the compiled graph held the group, and gloo's threads, to the exit)
-    # a run folder named without an env id's module: prefix, whose colon breaks scp (15 characters a script, no line)
-    ("ppo_continuous.py", "lines"): 756,
-    ("ppo_continuous.py", "code_chars"): 23_444,
+    # a run folder named without an env id's module: prefix, whose colon breaks scp (15 characters a script, no line);
+    # the envs made by the id's own vector env where it has one (6 lines and 250 characters a MuJoCo script)
+    ("ppo_continuous.py", "lines"): 762,
+    ("ppo_continuous.py", "code_chars"): 23_694,
     ("ppo_atari.py", "lines"): 705,
     ("ppo_atari.py", "code_chars"): 22_074,
-    ("ppo_kl_penalty.py", "lines"): 770,
-    ("ppo_kl_penalty.py", "code_chars"): 23_806,
+    ("ppo_kl_penalty.py", "lines"): 776,
+    ("ppo_kl_penalty.py", "code_chars"): 24_056,
 }
 NOT_MET = set(REACHED)
 CASES = [

@@ -27,8 +27,7 @@ class Scripted(gym.Env):
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
         self.t = 0
-        self.body_xyz = np.array([0.0, 0.0, self.start_z])  # the rules' torso, which the measures read at the start
-        return np.zeros(1, np.float32), {}
+        return np.array([self.start_z - 0.8], np.float32), {}  # as the rules' state starts: the torso's height - 0.8
 
     def step(self, action):
         z, cubes, distance, moved, flags = self.steps[self.t]

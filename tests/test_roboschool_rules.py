@@ -12,6 +12,7 @@ from conftest import ROOT
 from test_roboschool_humanoid import (
     JOINTS,
     PART_GEOMS,
+    ROW0,
     TASKS,
     body_xy,
     make,
@@ -63,8 +64,8 @@ def joint_angles(env):
 
 def far_flag(env, distance=10.0):
     """The flag `distance` m ahead of the body along x, the potential the current state's."""
-    env.target = body_xy(env) + [distance, 0.0]
-    env.data.mocap_pos[0, :2] = env.target
+    env.bodies.target[0] = body_xy(env) + [distance, 0.0]
+    env.data.mocap_pos[0, :2] = env.bodies.target[0]
     restart_potential(env)
 
 
@@ -86,10 +87,10 @@ def test_flagrun_harder_is_on_the_ground_below_08_m(z):
     qvel[0] = 1.0  # sliding toward the flag at 1 m/s
     env.set_state(pose(env, z), qvel)
     far_flag(env)
-    before = np.linalg.norm(env.target - body_xy(env))
-    env.frame = 119  # the next step is no throw step; the one after is (Roboschool's frame 120)
+    before = np.linalg.norm(env.bodies.target[0] - body_xy(env))
+    env.bodies.frame[0] = 119  # the next step is no throw step; the one after is (Roboschool's frame 120)
     _, _, terminated, _, info = env.step(np.zeros(17))
-    after = np.linalg.norm(env.target - body_xy(env))
+    after = np.linalg.norm(env.bodies.target[0] - body_xy(env))
     assert torso_z(env) == pytest.approx(z, abs=1e-9) and before - after == pytest.approx(DT, rel=1e-3)
     assert info["reward_alive"] == pytest.approx(1 + min(z, 0.8) / 0.8, abs=1e-9) and not terminated
     assert info["reward_progress"] == (
@@ -110,25 +111,25 @@ def test_the_body_xy_is_the_mean_of_29_parts():
     assert last_geoms == PART_GEOMS
     angles = {name: 0.7 * env.model.joint(name).range.mean() for name in JOINTS}  # bent, inside the limits
     env.set_state(pose(env, 1.4, **angles), np.zeros(env.model.nv))
-    env.target = np.array([3.0, -2.0])
-    env.data.mocap_pos[0, :2] = env.target
+    env.bodies.target[0] = [3.0, -2.0]
+    env.data.mocap_pos[0, :2] = env.bodies.target[0]
     restart_potential(env)
     info = env.step(np.zeros(17))[4]
     assert not info["flag_moved"]
-    distance = np.linalg.norm(env.target - body_xy(env))
+    distance = np.linalg.norm(env.bodies.target[0] - body_xy(env))
     assert info["distance_to_target"] == pytest.approx(distance, abs=1e-9)
     thirteen = np.mean([env.data.body(name).xpos[:2] for name in ["torso", *bodies]], axis=0)
     with_torso = (body_xy(env) * 29 + env.data.geom("uwaist").xpos[:2]) / 30
     for other in (thirteen, with_torso):  # far enough from the rule's to fail a test that read them
-        assert abs(np.linalg.norm(env.target - other) - distance) > 1e-3
+        assert abs(np.linalg.norm(env.bodies.target[0] - other) - distance) > 1e-3
 
 
 @pytest.mark.parametrize("distance, moved", [(0.99, True), (1.01, False)])
 def test_the_flag_moves_when_the_body_comes_within_1_m(distance, moved):
     env = frozen("HumanoidFlagrun", seed=3)
     env.set_state(pose(env, 1.4), np.zeros(env.model.nv))
-    env.target = body_xy(env) + distance * np.array([0.6, -0.8])
-    env.data.mocap_pos[0, :2] = env.target
+    env.bodies.target[0] = body_xy(env) + distance * np.array([0.6, -0.8])
+    env.data.mocap_pos[0, :2] = env.bodies.target[0]
     restart_potential(env)
     info = env.step(np.zeros(17))[4]
     assert info["flag_moved"] == moved and info["flags_reached"] == int(moved)
@@ -229,7 +230,7 @@ def test_the_cube_is_01_m_of_06_kg_resting_at_minus_15_0_005():
     (geom,) = [env.model.geom(g) for g in range(env.model.ngeom) if env.model.geom_bodyid[g] == cube.id]
     assert geom.type[0] == mujoco.mjtGeom.mjGEOM_BOX and geom.size.tolist() == [0.05] * 3
     assert cube.mass[0] == pytest.approx(0.6, rel=1e-12)
-    env.throw_cube()
+    env.bodies.throw_cube(0)
     for seed in range(3):  # back at rest there at every reset
         env.reset(seed=seed)
         np.testing.assert_allclose(env.data.body("cube").xpos, [-1.5, 0.0, 0.05], atol=1e-12)
@@ -247,8 +248,8 @@ def test_the_cube_flies_from_4_m_and_1_m_up_at_20_to_30_m_s_toward_where_the_tor
     qvel[:6] = [1.0, -2.0, 0.5, 2.0, -1.0, 3.0]  # moving and spinning, in the air
     env.set_state(pose(env, 2.0), qvel)
     far_flag(env)
-    env.frame = 120
-    env._np_random = Ends(high)
+    env.bodies.frame[0] = 120
+    env.bodies.rngs[0] = Ends(high)  # the rules draw from the body's generator, set to the env's at its reset
     info = env.step(np.zeros(17))[4]
     assert info["cubes_thrown"] == 1
     angle, speed, noise = (3.14, 30.0, 1.0) if high else (-3.14, 20.0, -1.0)
@@ -282,7 +283,7 @@ def test_the_state_is_clipped_to_5():
     for name, speed in speeds.items():
         qvel[env.model.joint(name).dofadr[0]] = speed
     env.set_state(env.data.qpos.copy(), qvel)
-    state = env.calc_state()
+    state = env.bodies.calc_state(ROW0)[0]
     np.testing.assert_allclose(state[9:16:2], [5.0, -5.0, 4.9, -4.9], rtol=1e-6)
 
 
@@ -398,8 +399,7 @@ class Scripted(gym.Env):
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
         self.t = 0
-        self.body_xyz = np.array([0.0, 0.0, 1.4])  # the rules' torso, which the measures read at the start
-        return np.zeros(1, np.float32), {}
+        return np.array([1.4 - 0.8], np.float32), {}  # as the rules' state starts: the torso's height - 0.8
 
     def step(self, action):
         z, cubes = self.steps[self.t]
