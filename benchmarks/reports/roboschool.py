@@ -155,9 +155,7 @@ def film_table(folder, level):
         flag = f"{row['flag_seen']} of {row['flag_near']}"
         cube = f"{row['cube_seen']} of {row['cube_flying']}" if "FlagrunHarder" in path.stem else "–"
         span = f"{float(row['body_span_median']):.2f} ({float(row['body_span_p5']):.2f})"
-        lines.append(
-            f"| [{path.stem.replace('__', ', ')}](video/{path.stem}.mp4) | {row['frames']} | {span} | {flag} | {cube} |"
-        )
+        lines.append(f"| {path.stem.replace('__', ', ')} | {row['frames']} | {span} | {flag} | {cube} |")
     return lines
 
 
@@ -185,7 +183,7 @@ def rules_table(folder, runs, level):
         f"{level} Roboschool's body against the earlier rules",
         "",
         f"The same command and seed on the earlier rules (gymnasium's body, its joint springs and dampers, the height"
-        f" of MuJoCo's torso origin, the mean of 13 bodies): [`{other.name}`](../{other.name}/report.md). Flags and"
+        f" of MuJoCo's torso origin, the mean of 13 bodies), in `benchmarks/results/{other.name}`. Flags and"
         " get-ups are the measures above, on each run's own rules.",
         "",
         "| env | setting | seed | earlier rules: last 100 | Roboschool's body: last 100 | earlier: flags an episode"
