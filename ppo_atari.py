@@ -29,6 +29,7 @@ import tempfile
 import time
 from collections import deque
 from dataclasses import asdict, dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -127,17 +128,18 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
     return torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
 
 
-def minibatch_loss(agent, batch, mb_inds, clip_coef, args):
-    """Minus L^{CLIP+VF+S}, eq. (9), on the minibatch mb_inds of the batch, and the statistics of its terms."""
+def minibatch_loss(agent, batch, mb_inds, epsilon, args):
+    """Minus L^{CLIP+VF+S}, eq. (9), on the minibatch mb_inds of the batch, and the statistics of its terms. epsilon is
+    L^CLIP's clip range this iteration, annealed by alpha (Table 5); the value loss keeps --clip-coef."""
     mb = {key: value[mb_inds] for key, value in batch.items()}
     _, newlogprob, probs, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
     logratio = newlogprob - mb["logprobs"]
     ratio = logratio.exp()  # r_t(theta), eq. (6)
     advantages = mb["advantages"]
-    if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch (all ranks' shares of it)
-        everyone = all_ranks(advantages)
+    if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch
+        everyone = all_ranks(advantages)  # torchrun: every rank's share of the minibatch; one process: advantages
         advantages = (advantages - everyone.mean()) / (everyone.std() + 1e-8)
-    pg_loss = clipped_surrogate_loss(ratio, advantages, clip_coef)
+    pg_loss = clipped_surrogate_loss(ratio, advantages, epsilon)
     v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
     entropy = probs.entropy().mean()
     loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
@@ -145,83 +147,131 @@ def minibatch_loss(agent, batch, mb_inds, clip_coef, args):
     # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
     stats["old_approx_kl"] = (-logratio).mean()
     stats["approx_kl"] = ((ratio - 1) - logratio).mean()
-    stats["clipfrac"] = ((ratio - 1.0).abs() > clip_coef).float().mean()
+    stats["clipfrac"] = ((ratio - 1.0).abs() > epsilon).float().mean()
     return loss, {name: stat.detach() for name, stat in stats.items()}
 
 
-def gradient_step(agent, optimizer, loss, args):
-    """One step of gradient descent on the loss."""
-    optimizer.zero_grad()
-    loss.backward()
-    average_gradients(agent)
-    if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
-        nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
-    optimizer.step()
+# TRAINING
+def train(args, stop=()):
+    """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates. Returns
+    (agent, run_dir). Raises Diverged if the loss or weights stop being finite, Stopped after a checkpoint on `stop`."""
+    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
+    run_dir = args.run_dir or new_run_dir(args)
+    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
+    global_step = checkpoint["global_step"] if checkpoint else 0
+    device = pick_device(args.device)
+    T, N = args.num_steps, args.num_envs
+    rank, world_size = rank_and_size()
+    n = N // world_size  # torchrun: this rank steps envs rank n, ..., rank n + n - 1 of the N
+    num_iterations = args.total_timesteps // (N * T)
+    compiled_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else None  # --compile: backward too
+    torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
+    # On --resume, purge_step drops what the run logged after its checkpoint.
+    with (
+        contextlib.closing(make_envs(args, n)) as envs,
+        open_writer(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
+    ):
+        agent = Agent(envs.single_action_space.n).to(device)
+        # Core detail 3: Adam with eps 1e-5. The lr is a tensor changed in place: data to compiled code, not a constant.
+        lr = torch.tensor(args.learning_rate, device=device)
+        optimizer = torch.optim.Adam(agent.parameters(), lr=lr, eps=1e-5, fused=True)
+        if checkpoint:  # the weights, Adam's moments and the random state where the checkpoint left them
+            agent.load_state_dict(checkpoint["agent"])
+            optimizer.load_state_dict(checkpoint["optimizer"])
+            torch.set_rng_state(checkpoint["torch_rng_state"])
+            print(f"resuming {run_dir} at step {global_step:,}")
+        if rank > 0:  # torchrun: the ranks made the same weights; rank r > 0 then draws from a stream of its own
+            torch.manual_seed(int(np.random.SeedSequence([args.seed, rank, global_step]).generate_state(1)[0]))
 
+        # The rollout buffer: T steps of this rank's n envs, a tensor for each quantity, each one in the update's batch.
+        scalars = "logprobs rewards values terminations truncations final_values".split()  # one number a step and env
+        buf = SimpleNamespace(**{name: torch.zeros((T, n), device=device) for name in scalars})
+        buf.obs = torch.zeros((T, n, 4, 84, 84), dtype=torch.uint8, device=device)  # uint8 until the network
+        buf.actions = torch.zeros((T, n), dtype=torch.long, device=device)
+        # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
+        next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + rank * n + np.arange(n))
+        next_obs = torch.as_tensor(next_obs, device=device)
+        frame_numbers = infos["episode_frame_number"]
+        lost_life = np.zeros(n, dtype=bool)
+        video = GameVideo(args.env_id, run_dir, frame_numbers[0], film=args.capture_video and rank == 0)
+        action_names = [a.name for a in envs.ale.get_action_set()]
+        fire = action_names.index("FIRE") if args.fire_on_life_loss and "FIRE" in action_names else None
+        log = Log(writer, args, global_step, num_iterations * N * T)
 
-# MANY PROCESSES. Under torchrun, P ranks run one Algorithm 1, as the paper's MPI actors did: each steps N/P of the N
-# envs and takes its share of every minibatch. These functions are where the ranks meet; in one process they do nothing.
-def rank_and_size():
-    """This process's rank and the number P of ranks: (0, 1) without torchrun."""
-    return (dist.get_rank(), dist.get_world_size()) if dist.is_initialized() else (0, 1)
+        # ALGORITHM 1: for iteration = 1, 2, ...
+        for iteration in range(checkpoint["iteration"] + 1 if checkpoint else 1, num_iterations + 1):
+            # §6.4, Table 5: alpha falls linearly from 1 to 0, scaling the lr (core detail 4) and L^CLIP's clip range.
+            alpha = 1.0 - (iteration - 1.0) / num_iterations
+            optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate if args.anneal_lr else args.learning_rate)
+            epsilon = torch.tensor(alpha * args.clip_coef if args.anneal_clip else args.clip_coef, device=device)
 
+            # ROLLOUT: run the policy pi_theta_old in N environments for T timesteps.
+            with torch.inference_mode():
+                for step in range(T):
+                    global_step += N
+                    buf.obs[step] = next_obs
+                    action, buf.logprobs[step], _, buf.values[step] = agent.get_action_and_value(next_obs)
+                    if fire is not None and lost_life.any():  # FIRE replaces the action; trained on
+                        action = torch.where(torch.as_tensor(lost_life, device=device), fire, action)
+                        _, buf.logprobs[step], _, buf.values[step] = agent.get_action_and_value(next_obs, action)
+                    buf.actions[step] = action
+                    next_obs, reward, term, trunc, infos = envs.step(action.cpu().numpy())
+                    next_obs = torch.as_tensor(next_obs, device=device)
+                    buf.terminations[step] = torch.as_tensor(term)
+                    buf.truncations[step] = torch.as_tensor(trunc)
+                    buf.rewards[step] = torch.as_tensor(np.sign(reward))  # atari detail 6: the reward's sign
+                    game_ended = game_over(term, trunc, frame_numbers, infos["episode_frame_number"])
+                    frame_numbers = infos["episode_frame_number"]
+                    lost_life = term & ~game_ended  # atari detail 3: a termination within a game is a lost life
+                    for i in np.flatnonzero(trunc):  # the true final observation of an episode cut by the time limit
+                        final_obs = torch.as_tensor(infos["final_obs"][i][None], device=device)  # a batch of one
+                        buf.final_values[step, i] = agent.get_value(final_obs)[0]
+                    log.episodes(reward, game_ended, global_step)  # a game's score: the raw rewards over its lives
+                    video.step(action[0], game_ended[0], frame_numbers[0], global_step)  # --capture-video, rank 0
 
-def all_ranks(x):
-    """The tensor x of every rank, concatenated in rank order (so row i of the envs' is env i of the run)."""
-    if not dist.is_initialized():
-        return x
-    parts = [torch.empty_like(x) for _ in range(dist.get_world_size())]
-    dist.all_gather(parts, x)
-    return torch.cat(parts)
+                next_value = agent.get_value(next_obs)  # V(s_T), eq. (10)'s bootstrap
 
+            # ADVANTAGES: next_values[t] = V(s_{t+1}), and where an episode was truncated, V of its final observation.
+            next_values = torch.cat([buf.values[1:], next_value[None]])
+            next_values = torch.where(buf.truncations.bool(), buf.final_values, next_values)
+            buf.advantages, buf.returns = compute_gae(
+                buf.rewards, buf.values, next_values, buf.terminations, buf.truncations, args.gamma, args.gae_lambda
+            )
 
-def average_gradients(agent):
-    """Each rank's gradient is of its equal share of the minibatch: their mean is the whole minibatch's gradient."""
-    grads = [p.grad for p in agent.parameters() if p.grad is not None]
-    if dist.is_initialized():
-        flat = torch.cat([g.flatten() for g in grads])  # one message, not one for each tensor
-        dist.all_reduce(flat)
-        for g, mean in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
-            g.copy_(mean.view_as(g) / dist.get_world_size())
+            # UPDATE: K epochs of minibatch gradient descent on the flattened batch.
+            batch = {key: value.flatten(0, 1) for key, value in vars(buf).items()}
+            update_stats = []
+            for _epoch in range(args.update_epochs):
+                # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches (1/P of each per rank).
+                for mb_inds in torch.randperm(n * T, device=device).split(args.minibatch_size // world_size):
+                    loss, stats = (compiled_loss or minibatch_loss)(agent, batch, mb_inds, epsilon, args)
+                    optimizer.zero_grad()
+                    loss.backward()
+                    average_gradients(agent)  # torchrun: the mean of the ranks' gradients; one process: nothing
+                    if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
+                        nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+                    optimizer.step()
+                    update_stats.append(stats)
 
+            # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
+            losses = {name: torch.stack([s[name] for s in update_stats]).mean() for name in update_stats[0]}
+            losses = {name: all_ranks(value[None]).mean().item() for name, value in losses.items()}  # over all ranks
+            residual = all_ranks(batch["returns"] - batch["values"])
+            losses["explained_variance"] = (1 - residual.var() / all_ranks(batch["returns"]).var()).item()
+            log.update(global_step, optimizer.param_groups[0]["lr"].item(), losses)
+            writer.add_scalar("charts/clip_coef", epsilon.item(), global_step)
 
-def seed_rank(seed, global_step):
-    """Every rank made the same weights from --seed; rank r > 0 then draws its actions and shuffles from a stream of its
-    own, seeded by (seed, r, step) at the start and at each resume. Rank 0's stream is one process's."""
-    if rank_and_size()[0] > 0:
-        torch.manual_seed(int(np.random.SeedSequence([seed, rank_and_size()[0], global_step]).generate_state(1)[0]))
-
-
-# ENVIRONMENT
-def make_envs(args, num_envs=None, training=True):
-    """ale-py's vector env: C++ emulators on their own threads, with atari details 1-5 and 7 (6 is in train())."""
-    import ale_py
-
-    game, repeat_action_probability = atari_game(args.env_id)
-    num_envs = num_envs or args.num_envs
-    return ale_py.AtariVectorEnv(
-        game,
-        num_envs,
-        num_threads=min(num_envs, (os.cpu_count() or 1) // int(os.environ.get("LOCAL_WORLD_SIZE", 1)) or 1),
-        max_num_frames_per_episode=args.max_episode_frames,  # a time limit: a truncation, whose value is bootstrapped
-        repeat_action_probability=repeat_action_probability,  # sticky actions, for ALE/<Game>-v5 only
-        noop_max=30,  # atari detail 1: up to 30 no-ops at the start of each game
-        frameskip=4,  # atari detail 2: repeat each action for 4 frames,
-        maxpool=True,  # and max-pool the last two
-        life_loss_info=training,  # atari detail 3: a lost life ends an episode for learning; the game and score go on
-        use_fire_reset=True,  # atari detail 4: press FIRE at the start of each game that needs it
-        img_height=84,  # atari detail 5: 84x84 grayscale
-        img_width=84,
-        grayscale=True,
-        stack_num=4,  # atari detail 7: the last 4 frames
-        reward_clipping=False,  # atari detail 6 is in train(), where the raw score is logged too
-        autoreset_mode="SameStep",  # as in ppo_continuous.py: the step that ends a game returns the next one's start
-    )
-
-
-def game_over(terminations, truncations, frame_numbers, new_frame_numbers):
-    """Which envs ended a whole game: ALE's episode_frame_number restarts at a new game, goes on after a lost life."""
-    return (terminations | truncations) & (new_frame_numbers < frame_numbers)
+            # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
+            if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
+                raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
+            stopping = bool(all_ranks(torch.tensor([bool(stop)])).any())  # torchrun: all stop at one iteration
+            if stopping or iteration % args.save_every == 0 or iteration == num_iterations:
+                writer.flush()  # the curve on disk reaches at least the checkpoint's step
+                save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration)
+            if stopping:
+                raise Stopped(f"saved step {global_step:,}: continue with --resume {checkpoint_path}")
+    print(f"saved {checkpoint_path}")
+    return agent, run_dir
 
 
 # AGENT
@@ -256,130 +306,65 @@ class Agent(nn.Module):
         return action, probs.log_prob(action), probs, self.critic(hidden).squeeze(-1)
 
 
-# TRAINING
-def train(args, stop=()):
-    """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates. Returns
-    (agent, run_dir). Raises Diverged when the loss or the weights stop being finite, and Stopped once main()'s `stop`
-    flag is set (by Ctrl-C or SIGTERM), after the iteration's checkpoint."""
-    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
-    run_dir = args.run_dir or new_run_dir(args)
-    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
-    global_step = checkpoint["global_step"] if checkpoint else 0
-    device = pick_device(args.device)
-    T, N = args.num_steps, args.num_envs
-    rank, world_size = rank_and_size()
-    n = N // world_size  # torchrun: this rank steps envs rank n, ..., rank n + n - 1 of the N
-    batch_size = N * T
-    num_iterations = args.total_timesteps // batch_size
-    compute_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else minibatch_loss  # backward too
-    torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
-    # On --resume, purge_step drops what the run logged after its checkpoint.
-    with (
-        contextlib.closing(make_envs(args, n)) as envs,
-        open_writer(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
-    ):
-        agent = Agent(envs.single_action_space.n).to(device)
-        # Core detail 3: Adam with eps 1e-5. The lr is a tensor: annealing changes a number, not what --compile built.
-        lr = torch.tensor(args.learning_rate, device=device)
-        optimizer = torch.optim.Adam(agent.parameters(), lr=lr, eps=1e-5, fused=True)
-        if checkpoint:  # the weights, Adam's moments and the random state where the checkpoint left them
-            agent.load_state_dict(checkpoint["agent"])
-            optimizer.load_state_dict(checkpoint["optimizer"])
-            torch.set_rng_state(checkpoint["torch_rng_state"])
-            print(f"resuming {run_dir} at step {global_step:,}")
-        seed_rank(args.seed, global_step)
+# ENVIRONMENT
+def make_envs(args, num_envs=None, training=True):
+    """ale-py's vector env: C++ emulators on their own threads, with atari details 1-5 and 7 (6 is in train())."""
+    import ale_py
 
-        # Rollout storage: T steps of this rank's n envs. Frames stay uint8 until the network.
-        obs = torch.zeros((T, n, 4, 84, 84), dtype=torch.uint8, device=device)
-        actions = torch.zeros((T, n), dtype=torch.long, device=device)
-        logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, n), device=device)
-        # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
-        next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + rank * n + np.arange(n))
-        next_obs = torch.as_tensor(next_obs, device=device)
-        frame_numbers = infos["episode_frame_number"]
-        lost_life = np.zeros(n, dtype=bool)
-        video = (
-            GameVideo(args.env_id, f"{run_dir}/videos", frame_numbers[0]) if args.capture_video and rank == 0 else None
-        )
-        action_names = [a.name for a in envs.ale.get_action_set()]
-        fire = action_names.index("FIRE") if args.fire_on_life_loss and "FIRE" in action_names else None
-        log = Log(writer, args, global_step, num_iterations * batch_size)
-
-        # ALGORITHM 1: for iteration = 1, 2, ...
-        for iteration in range(checkpoint["iteration"] + 1 if checkpoint else 1, num_iterations + 1):
-            # §6.4, Table 5: alpha falls linearly from 1 to 0, scaling the lr (core detail 4) and L^CLIP's clip range.
-            alpha = 1.0 - (iteration - 1.0) / num_iterations
-            optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate if args.anneal_lr else args.learning_rate)
-            clip_coef = torch.tensor(alpha * args.clip_coef if args.anneal_clip else args.clip_coef, device=device)
-
-            # ROLLOUT: run the policy pi_theta_old in N environments for T timesteps.
-            with torch.inference_mode():
-                for step in range(T):
-                    global_step += N
-                    obs[step] = next_obs
-                    action, logprobs[step], _, values[step] = agent.get_action_and_value(next_obs)
-                    if fire is not None and lost_life.any():  # FIRE replaces the action; trained on
-                        action = torch.where(torch.as_tensor(lost_life, device=device), fire, action)
-                        _, logprobs[step], _, values[step] = agent.get_action_and_value(next_obs, action)
-                    actions[step] = action
-                    next_obs, reward, term, trunc, infos = envs.step(action.cpu().numpy())
-                    next_obs = torch.as_tensor(next_obs, device=device)
-                    terminations[step] = torch.as_tensor(term)
-                    truncations[step] = torch.as_tensor(trunc)
-                    rewards[step] = torch.as_tensor(np.sign(reward))  # atari detail 6: learn from the reward's sign
-                    game_ended = game_over(term, trunc, frame_numbers, infos["episode_frame_number"])
-                    frame_numbers = infos["episode_frame_number"]
-                    lost_life = term & ~game_ended  # atari detail 3: a termination within a game is a lost life
-                    for i in np.flatnonzero(trunc):  # the true final observation of an episode cut by the time limit
-                        final_obs = torch.as_tensor(infos["final_obs"][i][None], device=device)  # a batch of one
-                        final_values[step, i] = agent.get_value(final_obs)[0]
-                    log.episodes(reward, game_ended, global_step)  # a game's score: the raw rewards over its lives
-                    if video is not None:
-                        video.step(action[0], game_ended[0], frame_numbers[0], global_step)
-
-                next_value = agent.get_value(next_obs)  # V(s_T), eq. (10)'s bootstrap
-
-            # ADVANTAGES: next_values[t] = V(s_{t+1}), and where an episode was truncated, V of its final observation.
-            next_values = torch.where(truncations.bool(), final_values, torch.cat([values[1:], next_value[None]]))
-            advantages, returns = compute_gae(
-                rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda
-            )
-
-            # UPDATE: K epochs of minibatch gradient descent on the flattened batch.
-            rollout = dict(
-                obs=obs, actions=actions, logprobs=logprobs, advantages=advantages, returns=returns, values=values
-            )
-            batch = {key: value.flatten(0, 1) for key, value in rollout.items()}
-            update_stats = []
-            for _epoch in range(args.update_epochs):
-                # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches (1/P of each per rank).
-                for mb_inds in torch.randperm(n * T, device=device).split(args.minibatch_size // world_size):
-                    loss, stats = compute_loss(agent, batch, mb_inds, clip_coef, args)
-                    gradient_step(agent, optimizer, loss, args)
-                    update_stats.append(stats)
-
-            # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
-            losses = {name: torch.stack([s[name] for s in update_stats]).mean() for name in update_stats[0]}
-            losses = {name: all_ranks(value[None]).mean().item() for name, value in losses.items()}  # over all ranks
-            residual = all_ranks(batch["returns"] - batch["values"])
-            losses["explained_variance"] = (1 - residual.var() / all_ranks(batch["returns"]).var()).item()
-            log.update(global_step, optimizer.param_groups[0]["lr"].item(), losses)
-            writer.add_scalar("charts/clip_coef", clip_coef.item(), global_step)
-
-            # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
-            if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
-                raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
-            stopping = bool(all_ranks(torch.tensor([bool(stop)])).any())  # torchrun: all stop at one iteration
-            if stopping or iteration % args.save_every == 0 or iteration == num_iterations:
-                writer.flush()  # the curve on disk reaches at least the checkpoint's step
-                save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration)
-            if stopping:
-                raise Stopped(f"saved step {global_step:,}: continue with --resume {checkpoint_path}")
-    print(f"saved {checkpoint_path}")
-    return agent, run_dir
+    game, repeat_action_probability = atari_game(args.env_id)
+    num_envs = num_envs or args.num_envs
+    return ale_py.AtariVectorEnv(
+        game,
+        num_envs,
+        num_threads=min(num_envs, (os.cpu_count() or 1) // int(os.environ.get("LOCAL_WORLD_SIZE", 1)) or 1),
+        max_num_frames_per_episode=args.max_episode_frames,  # a time limit: a truncation, whose value is bootstrapped
+        repeat_action_probability=repeat_action_probability,  # sticky actions, for ALE/<Game>-v5 only
+        noop_max=30,  # atari detail 1: up to 30 no-ops at the start of each game
+        frameskip=4,  # atari detail 2: repeat each action for 4 frames,
+        maxpool=True,  # and max-pool the last two
+        life_loss_info=training,  # atari detail 3: a lost life ends an episode for learning; the game and score go on
+        use_fire_reset=True,  # atari detail 4: press FIRE at the start of each game that needs it
+        img_height=84,  # atari detail 5: 84x84 grayscale
+        img_width=84,
+        grayscale=True,
+        stack_num=4,  # atari detail 7: the last 4 frames
+        reward_clipping=False,  # atari detail 6 is in train(), where the raw score is logged too
+        autoreset_mode="SameStep",  # as in ppo_continuous.py: the step that ends a game returns the next one's start
+    )
 
 
-# EVALUATION
+def game_over(terminations, truncations, frame_numbers, new_frame_numbers):
+    """Which envs ended a whole game: ALE's episode_frame_number restarts at a new game, goes on after a lost life."""
+    return (terminations | truncations) & (new_frame_numbers < frame_numbers)
+
+
+# MACHINERY: what running the algorithm takes, and teaches nothing of it. First, many processes: under torchrun, P ranks
+# run one Algorithm 1, as the paper's MPI actors did, each stepping N/P of the N envs and taking its share of every
+# minibatch. These functions are where the ranks meet; in one process they do nothing.
+def rank_and_size():
+    """This process's rank and the number P of ranks: (0, 1) without torchrun."""
+    return (dist.get_rank(), dist.get_world_size()) if dist.is_initialized() else (0, 1)
+
+
+def all_ranks(x):
+    """The tensor x of every rank, concatenated in rank order (so row i of the envs' is env i of the run)."""
+    if not dist.is_initialized():
+        return x
+    parts = [torch.empty_like(x) for _ in range(dist.get_world_size())]
+    dist.all_gather(parts, x)
+    return torch.cat(parts)
+
+
+def average_gradients(agent):
+    """Each rank's gradient is of its equal share of the minibatch: their mean is the whole minibatch's gradient."""
+    grads = [p.grad for p in agent.parameters() if p.grad is not None]
+    if dist.is_initialized():
+        flat = torch.cat([g.flatten() for g in grads])  # one message, not one for each tensor
+        dist.all_reduce(flat)
+        for g, mean in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
+            g.copy_(mean.view_as(g) / dist.get_world_size())
+
+
 def evaluate(args):
     """Play --eval-episodes whole games with the sampled policy of --eval-checkpoint (its argmax can stall)."""
     checkpoint, train_args = load_checkpoint(args.eval_checkpoint, args)
@@ -429,16 +414,19 @@ def atari_game(env_id):
 
 
 class GameVideo:
-    """With --capture-video, env 0's games 0, 1, 8, 27, ...: write_video replays each from its reset and actions."""
+    """With --capture-video (`film`), env 0's games 0, 1, 8, 27, ...: write_video replays each from its reset and
+    actions into the run's videos."""
 
-    def __init__(self, env_id, video_dir, reset_frames):
+    def __init__(self, env_id, run_dir, reset_frames, film):
         self.env_id = env_id
-        self.video_dir = video_dir
+        self.video_dir = f"{run_dir}/videos" if film else None
         self.reset_frames = reset_frames
         self.actions = []
         self.games = 0
 
     def step(self, action, game_ended, frame_number, global_step):
+        if self.video_dir is None:
+            return
         self.actions.append(int(action))
         if game_ended:
             if self.games == round(self.games ** (1 / 3)) ** 3:
@@ -471,7 +459,7 @@ def write_video(env_id, reset_frames, actions, path):
             video.append_data(ale.getScreenRGB())
 
 
-# MACHINERY. A run ends early Stopped (Ctrl-C or SIGTERM, after a checkpoint) or Diverged (last finite one kept).
+# A run ends early Stopped (Ctrl-C or SIGTERM, after a checkpoint) or Diverged (the last finite checkpoint kept).
 class Stopped(Exception): ...
 
 
@@ -544,9 +532,11 @@ class Log:
             print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean} | ETA {eta:.1f} min", flush=True)
 
 
-# A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
+# A resumed run keeps its checkpoint's hyperparameters: only how it runs may change. A checkpoint names this script as
+# it was published, so that a renamed copy resumes its own.
 RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
 FORMAT = "ppo-checkpoint-v1"
+WRITER = "ppo_atari.py"
 
 
 def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more):
@@ -555,7 +545,7 @@ def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more
         return
     state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "torch_rng_state": torch.get_rng_state()}
     numbers = {"global_step": global_step, "iteration": iteration, **more}
-    torch.save({"format": FORMAT, "script": SCRIPT, "args": asdict(args), **state, **numbers}, f"{path}.tmp")
+    torch.save({"format": FORMAT, "script": WRITER, "args": asdict(args), **state, **numbers}, f"{path}.tmp")
     os.replace(f"{path}.tmp", path)
 
 
@@ -567,28 +557,32 @@ def load_checkpoint(path, args):
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({type(e).__name__})") from None
-    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, SCRIPT):
-        raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
+    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, WRITER):
+        raise ValueError(f"{path!r} is not a checkpoint written by {WRITER} or a copy of it")
+    unknown = set(checkpoint["args"]) - set(asdict(args))  # a field renamed or removed since the checkpoint
+    if unknown:
+        raise ValueError(f"{path!r} holds hyperparameters that Args no longer has: {sorted(unknown)}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
     run_dir = os.path.dirname(os.path.abspath(path))
     return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
 
 
-# Every number must be finite and positive, except these, which have ranges of their own.
-RANGES = {"seed": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
-RANGES |= {"ent_coef": (0, math.inf), "vf_coef": (0, math.inf)}
+# Every number must be finite; these must also be positive, and these lie in ranges. A new flag may be any number.
+POSITIVE = "total_timesteps max_episode_frames learning_rate num_envs num_steps minibatch_size update_epochs".split()
+POSITIVE += "clip_coef max_grad_norm save_every eval_episodes torch_threads".split()
+RANGES = {"gamma": (0, 1), "gae_lambda": (0, 1), "ent_coef": (0, math.inf), "vf_coef": (0, math.inf)}
 
 
 def check_args(args):
     """Reject bad input before anything heavy loads, with a one-line reason (a ValueError)."""
     for name, value in asdict(args).items():
         flag = "--" + name.replace("_", "-")
-        low, high = RANGES.get(name, (0, math.inf))
+        low, high = RANGES.get(name, (-math.inf, math.inf))
         if type(value) not in (int, float):  # strings, booleans and None have no range
             continue
         if not math.isfinite(value):
             raise ValueError(f"{flag} must be a finite number, got {value}")
-        if name not in RANGES and value <= 0:
+        if name in POSITIVE and value <= 0:
             raise ValueError(f"{flag} must be positive, got {value}")
         if not low <= value <= high:
             raise ValueError(f"{flag} must be in [{low}, {high}], got {value}")
@@ -640,9 +634,8 @@ def start_tracking(args):
     TensorBoard scalars and keeps the videos. With no login or no network it logs offline, for `wandb sync`."""
     import wandb
 
-    run = load_checkpoint(args.resume, args)[1] if args.resume else args  # a resumed run: its own hyperparameters
-    name = os.path.basename(os.path.abspath(run.run_dir))
-    init = dict(project=args.wandb_project_name, entity=args.wandb_entity, name=name, id=name, config=asdict(run))
+    name = os.path.basename(os.path.abspath(args.run_dir))  # main() gave a resumed run its checkpoint's args
+    init = dict(project=args.wandb_project_name, entity=args.wandb_entity, name=name, id=name, config=asdict(args))
     init |= dict(sync_tensorboard=True, save_code=True, resume="allow")
     try:
         wandb.init(**init)
@@ -650,8 +643,8 @@ def start_tracking(args):
         print(f"wandb: {e}: logging offline instead, for `wandb sync` to upload", file=sys.stderr)
         wandb.teardown()
         wandb.init(**init, mode="offline")
-    videos = os.path.join(os.path.abspath(run.run_dir), "videos", "*.mp4")  # all filmed once the process ends
-    atexit.register(wandb.save, videos, base_path=run.run_dir, policy="now")
+    videos = os.path.join(os.path.abspath(args.run_dir), "videos", "*.mp4")  # all filmed once the process ends
+    atexit.register(wandb.save, videos, base_path=args.run_dir, policy="now")
 
 
 def main():
@@ -659,6 +652,12 @@ def main():
 
     args = tyro.cli(Args)
     try:
+        if args.resume:  # the command line read again over the checkpoint's hyperparameters shows what was typed
+            saved = load_checkpoint(args.resume, args)[1]
+            args = tyro.cli(Args, default=saved)
+            typed = [f"--{k.replace('_', '-')} {v}" for k, v in asdict(args).items() if v != getattr(saved, k)]
+            if typed:  # never dropped in silence
+                raise ValueError(f"{', '.join(typed)}: a resumed run keeps its checkpoint's hyperparameters")
         check_args(args)
     except ValueError as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts
@@ -674,7 +673,7 @@ def main():
         dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
         if dist.get_rank() > 0:  # rank 0 speaks for the run; the others' errors still reach stderr
             sys.stdout = open(os.devnull, "w")
-    if not (args.resume or args.run_dir):  # the run's folder, named once for train() and W&B
+    if not args.run_dir:  # the run's folder, named once for train() and W&B
         args.run_dir = new_run_dir(args)
     # W&B's run, and its patch of TensorBoard's writer, belong to the process: main() starts them (on rank 0)
     if args.track and rank_and_size()[0] == 0:

@@ -30,6 +30,7 @@ import tempfile
 import time
 from collections import deque
 from dataclasses import asdict, dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -128,17 +129,17 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True):
     return torch.max(v_loss_unclipped, (v_clipped - returns) ** 2).mean()
 
 
-def minibatch_loss(agent, batch, mb_inds, clip_coef, args):
+def minibatch_loss(agent, batch, mb_inds, args):
     """Minus L^{CLIP+VF+S}, eq. (9), on the minibatch mb_inds of the batch, and the statistics of its terms."""
     mb = {key: value[mb_inds] for key, value in batch.items()}
     _, newlogprob, probs, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
     logratio = newlogprob - mb["logprobs"]
     ratio = logratio.exp()  # r_t(theta), eq. (6)
     advantages = mb["advantages"]
-    if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch (all ranks' shares of it)
-        everyone = all_ranks(advantages)
+    if args.norm_adv:  # core detail 7: normalize the advantages of each minibatch
+        everyone = all_ranks(advantages)  # torchrun: every rank's share of the minibatch; one process: advantages
         advantages = (advantages - everyone.mean()) / (everyone.std() + 1e-8)
-    pg_loss = clipped_surrogate_loss(ratio, advantages, clip_coef)
+    pg_loss = clipped_surrogate_loss(ratio, advantages, args.clip_coef)
     v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
     entropy = probs.entropy().mean()
     loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
@@ -146,7 +147,7 @@ def minibatch_loss(agent, batch, mb_inds, clip_coef, args):
     # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
     stats["old_approx_kl"] = (-logratio).mean()
     stats["approx_kl"] = ((ratio - 1) - logratio).mean()
-    stats["clipfrac"] = ((ratio - 1.0).abs() > clip_coef).float().mean()
+    stats["clipfrac"] = ((ratio - 1.0).abs() > args.clip_coef).float().mean()
     return loss, {name: stat.detach() for name, stat in stats.items()}
 
 
@@ -171,81 +172,126 @@ def kl_adaptive_lr(lr, kl, target_kl):
     return lr
 
 
-def gradient_step(agent, optimizer, loss, args):
-    """One step of gradient descent on the loss."""
-    optimizer.zero_grad()
-    loss.backward()
-    average_gradients(agent)
-    if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
-        nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
-    optimizer.step()
-
-
-# MANY PROCESSES. Under torchrun, P ranks run one Algorithm 1, as the paper's MPI actors did: each steps N/P of the N
-# envs and takes its share of every minibatch. These functions are where the ranks meet; in one process they do nothing.
-def rank_and_size():
-    """This process's rank and the number P of ranks: (0, 1) without torchrun."""
-    return (dist.get_rank(), dist.get_world_size()) if dist.is_initialized() else (0, 1)
-
-
-def all_ranks(x):
-    """The tensor x of every rank, concatenated in rank order (so row i of the envs' is env i of the run)."""
-    if not dist.is_initialized():
-        return x
-    parts = [torch.empty_like(x) for _ in range(dist.get_world_size())]
-    dist.all_gather(parts, x)
-    return torch.cat(parts)
-
-
-def average_gradients(agent):
-    """Each rank's gradient is of its equal share of the minibatch: their mean is the whole minibatch's gradient."""
-    grads = [p.grad for p in agent.parameters() if p.grad is not None]
-    if dist.is_initialized():
-        flat = torch.cat([g.flatten() for g in grads])  # one message, not one for each tensor
-        dist.all_reduce(flat)
-        for g, mean in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
-            g.copy_(mean.view_as(g) / dist.get_world_size())
-
-
-def seed_rank(seed, global_step):
-    """Every rank made the same weights from --seed; rank r > 0 then draws its actions and shuffles from a stream of its
-    own, seeded by (seed, r, step) at the start and at each resume. Rank 0's stream is one process's."""
-    if rank_and_size()[0] > 0:
-        torch.manual_seed(int(np.random.SeedSequence([seed, rank_and_size()[0], global_step]).generate_state(1)[0]))
-
-
-# ENVIRONMENT
-def make_env(env_id, capture_video=False, video_dir=None, name_prefix="rl-video", episode_trigger=None):
-    import gymnasium as gym
-
-    if not capture_video:  # no wrappers: train() clips, normalizes and counts episodes itself
-        return gym.make(env_id)
-    os.environ.setdefault("MUJOCO_GL", "egl")  # render headless, without a display
-    env = gym.make(env_id, render_mode="rgb_array")
-    # Film with the model's tracking camera where it has one: a fixed camera loses a walker.
-    if "track" in [env.unwrapped.model.camera(i).name for i in range(env.unwrapped.model.ncam)]:
-        env.close()
-        env = gym.make(env_id, render_mode="rgb_array", camera_name="track")
-    return gym.wrappers.RecordVideo(env, video_dir, episode_trigger, name_prefix=name_prefix)
-
-
-def make_envs(args, video_dir, video_prefix):
-    """Core detail 1: N envs stepped together, the first one filmed with --capture-video. SAME_STEP autoreset: the step
-    that ends an episode returns the next one's first observation, and the final one in infos["final_obs"]."""
-    import gymnasium as gym
-
+# TRAINING
+def train(args, stop=()):
+    """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates. Returns
+    (agent, run_dir). Raises Diverged if the loss or weights stop being finite, Stopped after a checkpoint on `stop`."""
+    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
+    run_dir = args.run_dir or new_run_dir(args)
+    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
+    global_step = checkpoint["global_step"] if checkpoint else 0
+    device = pick_device(args.device)
+    T, N = args.num_steps, args.num_envs
     rank, world_size = rank_and_size()
-    n = args.num_envs // world_size  # torchrun: this rank's envs are rank n, ..., rank n + n - 1 of the N
-    module, _, env_name = args.env_id.rpartition(":")
-    if module:  # a module:id, whose module registers the id
-        importlib.import_module(module)
-    if gym.spec(env_name).vector_entry_point and not args.capture_video:  # the env's own N-env implementation, with
-        return gym.make_vec(args.env_id, n, vectorization_mode="vector_entry_point")  # the same episodes as N envs'
-    env_fns = [
-        lambda i=i: make_env(args.env_id, args.capture_video and i == 0, video_dir, video_prefix)
-        for i in range(rank * n, rank * n + n)
-    ]
-    return gym.vector.SyncVectorEnv(env_fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    n = N // world_size  # torchrun: this rank steps envs rank n, ..., rank n + n - 1 of the N
+    num_iterations = args.total_timesteps // (N * T)
+    compiled_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else None  # --compile: backward too
+    torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
+    # Videos are named by their first step. On --resume, purge_step drops what the run logged after its checkpoint.
+    with (
+        contextlib.closing(make_envs(args, f"{run_dir}/videos", f"from-step-{global_step}")) as envs,
+        open_writer(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
+    ):
+        obs_dim = envs.single_observation_space.shape[0]
+        act_dim = envs.single_action_space.shape[0]
+        agent = Agent(obs_dim, act_dim, norm_obs=args.norm_obs).to(device)
+        agent.actor_logstd.requires_grad_(args.anneal_logstd is None)  # Table 4: a schedule sets it, not the gradient
+        # Core detail 3: Adam with eps 1e-5. The lr is a tensor changed in place: data to compiled code, not a constant.
+        lr = torch.tensor(args.learning_rate, device=device)
+        optimizer = torch.optim.Adam(agent.parameters(), lr=lr, eps=1e-5, fused=True)
+        if checkpoint:  # the weights, Adam's moments and the random state where the checkpoint left them
+            agent.load_state_dict(checkpoint["agent"])
+            optimizer.load_state_dict(checkpoint["optimizer"])
+            torch.set_rng_state(checkpoint["torch_rng_state"])
+            print(f"resuming {run_dir} at step {global_step:,}")
+        if rank > 0:  # torchrun: the ranks made the same weights; rank r > 0 then draws from a stream of its own
+            torch.manual_seed(int(np.random.SeedSequence([args.seed, rank, global_step]).generate_state(1)[0]))
+
+        # The rollout buffer: T steps of this rank's n envs, a tensor for each quantity, each one in the update's batch.
+        scalars = "logprobs rewards values terminations truncations final_values".split()  # one number a step and env
+        buf = SimpleNamespace(**{name: torch.zeros((T, n), device=device) for name in scalars})
+        buf.obs = torch.zeros((T, n, obs_dim), device=device)  # normalized: the network's inputs
+        buf.actions = torch.zeros((T, n, act_dim), device=device)
+        # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
+        next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + rank * n + np.arange(n)).tolist())
+        next_obs = torch.as_tensor(agent.normalize_obs(next_obs, update=True), device=device)
+        log = Log(writer, args, global_step, num_iterations * N * T)
+
+        # ALGORITHM 1: for iteration = 1, 2, ...
+        for iteration in range(checkpoint["iteration"] + 1 if checkpoint else 1, num_iterations + 1):
+            # Core detail 4: anneal the learning rate linearly to 0; epsilon stays fixed, as in §6.1.
+            alpha = 1.0 - (iteration - 1.0) / num_iterations
+            if args.anneal_lr:
+                optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate)
+            if args.anneal_logstd:  # Table 4: the log std follows its schedule (and the lr the KL, after the update)
+                agent.actor_logstd.fill_(linear_anneal(*args.anneal_logstd, 1.0 - alpha))
+
+            # ROLLOUT: run the policy pi_theta_old in N environments for T timesteps.
+            with torch.inference_mode():
+                for step in range(T):
+                    global_step += N
+                    buf.obs[step] = next_obs
+                    action, buf.logprobs[step], _, buf.values[step] = agent.get_action_and_value(next_obs)
+                    buf.actions[step] = action
+                    # Continuous detail 5: clip the action for the env only; the ratio uses the sample's log-prob.
+                    action = np.clip(action.cpu().numpy(), envs.single_action_space.low, envs.single_action_space.high)
+                    next_obs_raw, reward, term, trunc, infos = envs.step(action)
+                    next_obs = torch.as_tensor(agent.normalize_obs(next_obs_raw, update=True), device=device)
+                    buf.terminations[step] = torch.as_tensor(term)
+                    buf.truncations[step] = torch.as_tensor(trunc)
+                    scaled = agent.normalize_reward(reward, term | trunc, args.gamma) if args.norm_reward else reward
+                    buf.rewards[step] = torch.as_tensor(scaled)  # continuous details 8-9: the reward learned
+                    for i in np.flatnonzero(trunc):  # the true final observation of an episode cut by the time limit
+                        final_obs = torch.as_tensor(agent.normalize_obs(infos["final_obs"][i]), device=device)
+                        buf.final_values[step, i] = agent.get_value(final_obs)
+                    log.episodes(reward, term | trunc, global_step)  # the raw rewards' sum is an episode's return
+
+                next_value = agent.get_value(next_obs)  # V(s_T), eq. (10)'s bootstrap
+            agent.merge_ranks()  # torchrun: every rank's statistics become all ranks'; one process: nothing
+
+            # ADVANTAGES: next_values[t] = V(s_{t+1}), and where an episode was truncated, V of its final observation.
+            next_values = torch.cat([buf.values[1:], next_value[None]])
+            next_values = torch.where(buf.truncations.bool(), buf.final_values, next_values)
+            buf.advantages, buf.returns = compute_gae(
+                buf.rewards, buf.values, next_values, buf.terminations, buf.truncations, args.gamma, args.gae_lambda
+            )
+
+            # UPDATE: K epochs of minibatch gradient descent on the flattened batch.
+            batch = {key: value.flatten(0, 1) for key, value in vars(buf).items()}
+            update_stats = []
+            for _epoch in range(args.update_epochs):
+                # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches (1/P of each per rank).
+                for mb_inds in torch.randperm(n * T, device=device).split(args.minibatch_size // world_size):
+                    loss, stats = (compiled_loss or minibatch_loss)(agent, batch, mb_inds, args)
+                    optimizer.zero_grad()
+                    loss.backward()
+                    average_gradients(agent)  # torchrun: the mean of the ranks' gradients; one process: nothing
+                    if args.clip_grad_norm:  # core detail 11: clip the global norm of all gradients together
+                        nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+                    optimizer.step()
+                    update_stats.append(stats)
+
+            # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
+            losses = {name: torch.stack([s[name] for s in update_stats]).mean() for name in update_stats[0]}
+            losses = {name: all_ranks(value[None]).mean().item() for name, value in losses.items()}  # over all ranks
+            residual = all_ranks(batch["returns"] - batch["values"])
+            losses["explained_variance"] = (1 - residual.var() / all_ranks(batch["returns"]).var()).item()
+            log.update(global_step, optimizer.param_groups[0]["lr"].item(), losses)
+            if args.lr_target_kl:  # Table 4: the next update's step size, from this one's KL (the mean logged)
+                step_size = optimizer.param_groups[0]["lr"]
+                step_size.fill_(kl_adaptive_lr(step_size.item(), losses["approx_kl"], args.lr_target_kl))
+
+            # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
+            if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
+                raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
+            stopping = bool(all_ranks(torch.tensor([bool(stop)])).any())  # torchrun: all stop at one iteration
+            if stopping or iteration % args.save_every == 0 or iteration == num_iterations:
+                writer.flush()  # the curve on disk reaches at least the checkpoint's step
+                save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration)
+            if stopping:
+                raise Stopped(f"saved step {global_step:,}: continue with --resume {checkpoint_path}")
+    print(f"saved {checkpoint_path}")
+    return agent, run_dir
 
 
 # AGENT
@@ -359,126 +405,67 @@ class Agent(nn.Module):
         return action, probs.log_prob(action), probs, self.get_value(obs)
 
 
-# TRAINING
-def train(args, stop=()):
-    """Algorithm 1 of §5: N actors collect T steps with pi_theta_old, then K epochs of minibatch updates. Returns
-    (agent, run_dir). Raises Diverged when the loss or the weights stop being finite, and Stopped once main()'s `stop`
-    flag is set (by Ctrl-C or SIGTERM), after the iteration's checkpoint."""
-    checkpoint, args = load_checkpoint(args.resume, args) if args.resume else (None, args)  # --resume: its args
-    run_dir = args.run_dir or new_run_dir(args)
-    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
-    global_step = checkpoint["global_step"] if checkpoint else 0
-    device = pick_device(args.device)
-    T, N = args.num_steps, args.num_envs
+# ENVIRONMENT
+def make_env(env_id, capture_video=False, video_dir=None, name_prefix="rl-video", episode_trigger=None):
+    import gymnasium as gym
+
+    if not capture_video:  # no wrappers: train() clips, normalizes and counts episodes itself
+        return gym.make(env_id)
+    os.environ.setdefault("MUJOCO_GL", "egl")  # render headless, without a display
+    env = gym.make(env_id, render_mode="rgb_array")
+    model = getattr(env.unwrapped, "model", None)  # MuJoCo's: film with its tracking camera, which follows a walker
+    if model is not None and "track" in [model.camera(i).name for i in range(model.ncam)]:
+        env.close()
+        env = gym.make(env_id, render_mode="rgb_array", camera_name="track")
+    return gym.wrappers.RecordVideo(env, video_dir, episode_trigger, name_prefix=name_prefix)
+
+
+def make_envs(args, video_dir, video_prefix):
+    """Core detail 1: N envs stepped together, the first one filmed with --capture-video. SAME_STEP autoreset: the step
+    that ends an episode returns the next one's first observation, and the final one in infos["final_obs"]."""
+    import gymnasium as gym
+
     rank, world_size = rank_and_size()
-    n = N // world_size  # torchrun: this rank steps envs rank n, ..., rank n + n - 1 of the N
-    batch_size = N * T
-    num_iterations = args.total_timesteps // batch_size
-    compute_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else minibatch_loss  # backward too
-    torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
-    # Videos are named by their first step. On --resume, purge_step drops what the run logged after its checkpoint.
-    with (
-        contextlib.closing(make_envs(args, f"{run_dir}/videos", f"from-step-{global_step}")) as envs,
-        open_writer(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
-    ):
-        obs_dim = envs.single_observation_space.shape[0]
-        act_dim = envs.single_action_space.shape[0]
-        agent = Agent(obs_dim, act_dim, norm_obs=args.norm_obs).to(device)
-        agent.actor_logstd.requires_grad_(args.anneal_logstd is None)  # Table 4: a schedule sets it, not the gradient
-        # Core detail 3: Adam with eps 1e-5. The lr is a tensor: annealing changes a number, not what --compile built.
-        lr = torch.tensor(args.learning_rate, device=device)
-        optimizer = torch.optim.Adam(agent.parameters(), lr=lr, eps=1e-5, fused=True)
-        if checkpoint:  # the weights, Adam's moments and the random state where the checkpoint left them
-            agent.load_state_dict(checkpoint["agent"])
-            optimizer.load_state_dict(checkpoint["optimizer"])
-            torch.set_rng_state(checkpoint["torch_rng_state"])
-            print(f"resuming {run_dir} at step {global_step:,}")
-        seed_rank(args.seed, global_step)
-
-        # Rollout storage: T steps of this rank's n envs. Observations are stored normalized: they are the inputs.
-        obs = torch.zeros((T, n, obs_dim), device=device)
-        actions = torch.zeros((T, n, act_dim), device=device)
-        logprobs, rewards, values, terminations, truncations, final_values = torch.zeros((6, T, n), device=device)
-        # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
-        next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + rank * n + np.arange(n)).tolist())
-        next_obs = torch.as_tensor(agent.normalize_obs(next_obs, update=True), device=device)
-        log = Log(writer, args, global_step, num_iterations * batch_size)
-
-        # ALGORITHM 1: for iteration = 1, 2, ...
-        for iteration in range(checkpoint["iteration"] + 1 if checkpoint else 1, num_iterations + 1):
-            # Core detail 4: anneal the learning rate linearly to 0; epsilon stays fixed, as in §6.1.
-            alpha = 1.0 - (iteration - 1.0) / num_iterations
-            if args.anneal_lr:
-                optimizer.param_groups[0]["lr"].fill_(alpha * args.learning_rate)
-            if args.anneal_logstd:  # Table 4: the log std follows its schedule (and the lr the KL, after the update)
-                agent.actor_logstd.fill_(linear_anneal(*args.anneal_logstd, 1.0 - alpha))
-
-            # ROLLOUT: run the policy pi_theta_old in N environments for T timesteps.
-            with torch.inference_mode():
-                for step in range(T):
-                    global_step += N
-                    obs[step] = next_obs
-                    action, logprobs[step], _, values[step] = agent.get_action_and_value(next_obs)
-                    actions[step] = action
-                    # Continuous detail 5: clip the action for the env only; the ratio uses the sample's log-prob.
-                    action = np.clip(action.cpu().numpy(), envs.single_action_space.low, envs.single_action_space.high)
-                    next_obs_raw, reward, term, trunc, infos = envs.step(action)
-                    next_obs = torch.as_tensor(agent.normalize_obs(next_obs_raw, update=True), device=device)
-                    terminations[step] = torch.as_tensor(term)
-                    truncations[step] = torch.as_tensor(trunc)
-                    scaled = agent.normalize_reward(reward, term | trunc, args.gamma) if args.norm_reward else reward
-                    rewards[step] = torch.as_tensor(scaled)  # continuous details 8-9: the reward learned from
-                    for i in np.flatnonzero(trunc):  # the true final observation of an episode cut by the time limit
-                        final_obs = torch.as_tensor(agent.normalize_obs(infos["final_obs"][i]), device=device)
-                        final_values[step, i] = agent.get_value(final_obs)
-                    log.episodes(reward, term | trunc, global_step)  # the raw rewards' sum is an episode's return
-
-                next_value = agent.get_value(next_obs)  # V(s_T), eq. (10)'s bootstrap
-            agent.merge_ranks()
-
-            # ADVANTAGES: next_values[t] = V(s_{t+1}), and where an episode was truncated, V of its final observation.
-            next_values = torch.where(truncations.bool(), final_values, torch.cat([values[1:], next_value[None]]))
-            advantages, returns = compute_gae(
-                rewards, values, next_values, terminations, truncations, args.gamma, args.gae_lambda
-            )
-
-            # UPDATE: K epochs of minibatch gradient descent on the flattened batch.
-            rollout = dict(
-                obs=obs, actions=actions, logprobs=logprobs, advantages=advantages, returns=returns, values=values
-            )
-            batch = {key: value.flatten(0, 1) for key, value in rollout.items()}
-            update_stats = []
-            for _epoch in range(args.update_epochs):
-                # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches (1/P of each per rank).
-                for mb_inds in torch.randperm(n * T, device=device).split(args.minibatch_size // world_size):
-                    loss, stats = compute_loss(agent, batch, mb_inds, args.clip_coef, args)
-                    gradient_step(agent, optimizer, loss, args)
-                    update_stats.append(stats)
-
-            # LOGGING: the mean over every minibatch of the update, not the last minibatch's value.
-            losses = {name: torch.stack([s[name] for s in update_stats]).mean() for name in update_stats[0]}
-            losses = {name: all_ranks(value[None]).mean().item() for name, value in losses.items()}  # over all ranks
-            residual = all_ranks(batch["returns"] - batch["values"])
-            losses["explained_variance"] = (1 - residual.var() / all_ranks(batch["returns"]).var()).item()
-            log.update(global_step, optimizer.param_groups[0]["lr"].item(), losses)
-            if args.lr_target_kl:  # Table 4: the next update's step size, from this one's KL (the mean logged)
-                step_size = optimizer.param_groups[0]["lr"]
-                step_size.fill_(kl_adaptive_lr(step_size.item(), losses["approx_kl"], args.lr_target_kl))
-
-            # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
-            if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
-                raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
-            stopping = bool(all_ranks(torch.tensor([bool(stop)])).any())  # torchrun: all stop at one iteration
-            if stopping or iteration % args.save_every == 0 or iteration == num_iterations:
-                writer.flush()  # the curve on disk reaches at least the checkpoint's step
-                save_checkpoint(checkpoint_path, args, agent, optimizer, global_step, iteration)
-            if stopping:
-                raise Stopped(f"saved step {global_step:,}: continue with --resume {checkpoint_path}")
-    print(f"saved {checkpoint_path}")
-    return agent, run_dir
+    n = args.num_envs // world_size  # torchrun: this rank's envs are rank n, ..., rank n + n - 1 of the N
+    module, _, env_name = args.env_id.rpartition(":")
+    if module:  # a module:id, whose module registers the id
+        importlib.import_module(module)
+    if gym.spec(env_name).vector_entry_point and not args.capture_video:  # the env's own N-env implementation, with
+        return gym.make_vec(args.env_id, n, vectorization_mode="vector_entry_point")  # the same episodes as N envs'
+    env_fns = [
+        lambda i=i: make_env(args.env_id, args.capture_video and i == 0, video_dir, video_prefix)
+        for i in range(rank * n, rank * n + n)
+    ]
+    return gym.vector.SyncVectorEnv(env_fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
 
 
-# EVALUATION
+# MACHINERY: what running the algorithm takes, and teaches nothing of it. First, many processes: under torchrun, P ranks
+# run one Algorithm 1, as the paper's MPI actors did, each stepping N/P of the N envs and taking its share of every
+# minibatch. These functions are where the ranks meet; in one process they do nothing.
+def rank_and_size():
+    """This process's rank and the number P of ranks: (0, 1) without torchrun."""
+    return (dist.get_rank(), dist.get_world_size()) if dist.is_initialized() else (0, 1)
+
+
+def all_ranks(x):
+    """The tensor x of every rank, concatenated in rank order (so row i of the envs' is env i of the run)."""
+    if not dist.is_initialized():
+        return x
+    parts = [torch.empty_like(x) for _ in range(dist.get_world_size())]
+    dist.all_gather(parts, x)
+    return torch.cat(parts)
+
+
+def average_gradients(agent):
+    """Each rank's gradient is of its equal share of the minibatch: their mean is the whole minibatch's gradient."""
+    grads = [p.grad for p in agent.parameters() if p.grad is not None]
+    if dist.is_initialized():
+        flat = torch.cat([g.flatten() for g in grads])  # one message, not one for each tensor
+        dist.all_reduce(flat)
+        for g, mean in zip(grads, flat.split([g.numel() for g in grads]), strict=True):
+            g.copy_(mean.view_as(g) / dist.get_world_size())
+
+
 def evaluate(args):
     """Run the deterministic policy (the Gaussian's mean) of --eval-checkpoint with its saved statistics."""
     checkpoint, train_args = load_checkpoint(args.eval_checkpoint, args)
@@ -494,7 +481,8 @@ def evaluate(args):
             episode_return = 0.0
             while not done:  # the statistics stay frozen: evaluation does not change the normalization
                 with torch.inference_mode():
-                    action = agent.actor_mean(torch.as_tensor(agent.normalize_obs(raw_obs), device=device))
+                    obs = torch.as_tensor(agent.normalize_obs(raw_obs), device=device)
+                    action = agent.get_action_and_value(obs)[2].mean  # the mean of pi(.|s), whatever the network
                 action = np.clip(action.cpu().numpy(), env.action_space.low, env.action_space.high)
                 raw_obs, reward, term, trunc, _ = env.step(action)
                 episode_return += float(reward)
@@ -505,7 +493,7 @@ def evaluate(args):
     return returns
 
 
-# MACHINERY. A run ends early Stopped (Ctrl-C or SIGTERM, after a checkpoint) or Diverged (last finite one kept).
+# A run ends early Stopped (Ctrl-C or SIGTERM, after a checkpoint) or Diverged (the last finite checkpoint kept).
 class Stopped(Exception): ...
 
 
@@ -578,9 +566,11 @@ class Log:
             print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean} | ETA {eta:.1f} min", flush=True)
 
 
-# A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
+# A resumed run keeps its checkpoint's hyperparameters: only how it runs may change. A checkpoint names this script as
+# it was published, so that a renamed copy resumes its own.
 RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
 FORMAT = "ppo-checkpoint-v1"
+WRITER = "ppo_continuous.py"
 
 
 def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more):
@@ -589,7 +579,7 @@ def save_checkpoint(path, args, agent, optimizer, global_step, iteration, **more
         return
     state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "torch_rng_state": torch.get_rng_state()}
     numbers = {"global_step": global_step, "iteration": iteration, **more}
-    torch.save({"format": FORMAT, "script": SCRIPT, "args": asdict(args), **state, **numbers}, f"{path}.tmp")
+    torch.save({"format": FORMAT, "script": WRITER, "args": asdict(args), **state, **numbers}, f"{path}.tmp")
     os.replace(f"{path}.tmp", path)
 
 
@@ -601,16 +591,20 @@ def load_checkpoint(path, args):
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise ValueError(f"cannot read checkpoint {path!r}: corrupt or not a checkpoint ({type(e).__name__})") from None
-    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, SCRIPT):
-        raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
+    if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, WRITER):
+        raise ValueError(f"{path!r} is not a checkpoint written by {WRITER} or a copy of it")
+    unknown = set(checkpoint["args"]) - set(asdict(args))  # a field renamed or removed since the checkpoint
+    if unknown:
+        raise ValueError(f"{path!r} holds hyperparameters that Args no longer has: {sorted(unknown)}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
     run_dir = os.path.dirname(os.path.abspath(path))
     return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
 
 
-# Every number must be finite and positive, except these, which have ranges of their own.
-RANGES = {"seed": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
-RANGES |= {"ent_coef": (0, math.inf), "vf_coef": (0, math.inf)}
+# Every number must be finite; these must also be positive, and these lie in ranges. A new flag may be any number.
+POSITIVE = "total_timesteps learning_rate num_envs num_steps lr_target_kl minibatch_size update_epochs".split()
+POSITIVE += "clip_coef max_grad_norm save_every eval_episodes torch_threads".split()
+RANGES = {"gamma": (0, 1), "gae_lambda": (0, 1), "ent_coef": (0, math.inf), "vf_coef": (0, math.inf)}
 
 
 def check_args(args):
@@ -619,12 +613,12 @@ def check_args(args):
 
     for name, value in asdict(args).items():
         flag = "--" + name.replace("_", "-")
-        low, high = RANGES.get(name, (0, math.inf))
+        low, high = RANGES.get(name, (-math.inf, math.inf))
         if type(value) not in (int, float):  # strings, booleans and None have no range
             continue
         if not math.isfinite(value):
             raise ValueError(f"{flag} must be a finite number, got {value}")
-        if name not in RANGES and value <= 0:
+        if name in POSITIVE and value <= 0:
             raise ValueError(f"{flag} must be positive, got {value}")
         if not low <= value <= high:
             raise ValueError(f"{flag} must be in [{low}, {high}], got {value}")
@@ -655,9 +649,10 @@ def check_args(args):
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ValueError(f"{SCRIPT} needs a Box action space and flat observations, not {env.action_space}")
-    if args.capture_video:  # render a frame in a child process: filming that cannot start stops here, in one line
+    if args.capture_video:  # filming that cannot start stops here: a frame, in a child that runs this file's imports
         gl = os.environ.get("MUJOCO_GL", "egl")  # make_env's choice
-        frame = f"import gymnasium as g; e = g.make({args.env_id!r}, render_mode='rgb_array'); e.reset(); e.render()"
+        imports = f"import runpy, gymnasium as g; runpy.run_path({__file__!r})"
+        frame = f"{imports}; e = g.make({args.env_id!r}, render_mode='rgb_array'); e.reset(); e.render()"
         child = subprocess.run([sys.executable, "-c", frame], env={**os.environ, "MUJOCO_GL": gl}, capture_output=True)
         if child.returncode:
             fix = "install EGL (Debian: apt install libegl1 libgl1-mesa-dri) or set MUJOCO_GL=osmesa or glfw"
@@ -697,9 +692,8 @@ def start_tracking(args):
     TensorBoard scalars and keeps the videos. With no login or no network it logs offline, for `wandb sync`."""
     import wandb
 
-    run = load_checkpoint(args.resume, args)[1] if args.resume else args  # a resumed run: its own hyperparameters
-    name = os.path.basename(os.path.abspath(run.run_dir))
-    init = dict(project=args.wandb_project_name, entity=args.wandb_entity, name=name, id=name, config=asdict(run))
+    name = os.path.basename(os.path.abspath(args.run_dir))  # main() gave a resumed run its checkpoint's args
+    init = dict(project=args.wandb_project_name, entity=args.wandb_entity, name=name, id=name, config=asdict(args))
     init |= dict(sync_tensorboard=True, save_code=True, resume="allow")
     try:
         wandb.init(**init)
@@ -707,8 +701,8 @@ def start_tracking(args):
         print(f"wandb: {e}: logging offline instead, for `wandb sync` to upload", file=sys.stderr)
         wandb.teardown()
         wandb.init(**init, mode="offline")
-    videos = os.path.join(os.path.abspath(run.run_dir), "videos", "*.mp4")  # all filmed once the process ends
-    atexit.register(wandb.save, videos, base_path=run.run_dir, policy="now")
+    videos = os.path.join(os.path.abspath(args.run_dir), "videos", "*.mp4")  # all filmed once the process ends
+    atexit.register(wandb.save, videos, base_path=args.run_dir, policy="now")
 
 
 def main():
@@ -716,6 +710,12 @@ def main():
 
     args = tyro.cli(Args)
     try:
+        if args.resume:  # the command line read again over the checkpoint's hyperparameters shows what was typed
+            saved = load_checkpoint(args.resume, args)[1]
+            args = tyro.cli(Args, default=saved)
+            typed = [f"--{k.replace('_', '-')} {v}" for k, v in asdict(args).items() if v != getattr(saved, k)]
+            if typed:  # never dropped in silence
+                raise ValueError(f"{', '.join(typed)}: a resumed run keeps its checkpoint's hyperparameters")
         check_args(args)
     except ValueError as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts
@@ -731,7 +731,7 @@ def main():
         dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
         if dist.get_rank() > 0:  # rank 0 speaks for the run; the others' errors still reach stderr
             sys.stdout = open(os.devnull, "w")
-    if not (args.resume or args.run_dir):  # the run's folder, named once for train() and W&B
+    if not args.run_dir:  # the run's folder, named once for train() and W&B
         args.run_dir = new_run_dir(args)
     # W&B's run, and its patch of TensorBoard's writer, belong to the process: main() starts them (on rank 0)
     if args.track and rank_and_size()[0] == 0:

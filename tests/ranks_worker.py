@@ -4,7 +4,7 @@
     torchrun --nproc-per-node 2 tests/ranks_worker.py main SCRIPT OUT -- FLAGS...   # the script's main(), as a user
 
 `update` builds one fixed rollout batch (the same on every rank, from a fixed seed), gives rank r its half (rows
-r B/2, ..., r B/2 + B/2 - 1), and runs K epochs of the script's own minibatch_loss and gradient_step on it, each rank
+r B/2, ..., r B/2 + B/2 - 1), and runs K epochs of the script's own minibatch_loss and gradient step on it, each rank
 taking its half of every minibatch; it also feeds each rank's half of a stream of observations to the script's
 RunningMeanStd and merges them. `main` runs the script's main() and keeps the agent its train() returns, the KL that
 each call of the script's KL rule (Table 4's step size, §4's beta) read, the seeds its envs were reset with, and the
@@ -60,14 +60,22 @@ def minibatches(rank, size, epoch):
 
 
 def update(module, script, agent, batch, rank, size, indices):
-    """K epochs of the script's minibatch_loss and gradient_step; `indices(epoch)` gives the minibatches."""
-    args = module.Args(ent_coef=0.01)
+    """K epochs of the script's minibatch_loss and the gradient step of its train(), whose average_gradients meets
+    the other ranks; `indices(epoch)` gives the minibatches."""
+    args = module.Args(ent_coef=0.01, clip_coef=0.2)
     optimizer = torch.optim.Adam(agent.parameters(), lr=1e-4, eps=1e-5)
     extra = (agent.actor_logstd.detach().clone(), torch.tensor(0.5)) if script == "ppo_kl_penalty.py" else ()
     for epoch in range(K):
         for mb_inds in indices(epoch):
-            loss, _ = module.minibatch_loss(agent, batch, mb_inds, torch.tensor(0.2), args, *extra)
-            module.gradient_step(agent, optimizer, loss, args)
+            if script == "ppo_atari.py":  # its L^CLIP's clip range, annealed in train(), comes before args
+                loss, _ = module.minibatch_loss(agent, batch, mb_inds, torch.tensor(0.2), args)
+            else:
+                loss, _ = module.minibatch_loss(agent, batch, mb_inds, args, *extra)
+            optimizer.zero_grad()
+            loss.backward()
+            module.average_gradients(agent)
+            torch.nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+            optimizer.step()
     return agent
 
 

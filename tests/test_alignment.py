@@ -12,9 +12,11 @@ from conftest import ROOT, SCRIPTS, load_script
 # Top-level definitions that a variant is meant to change.
 CHANGED_ON_PURPOSE = {
     ("ppo_continuous.py", "ppo_kl_penalty.py"): {"Args", "minibatch_loss", "save_checkpoint", "check_args", "train"},
-    # Atari has its own envs, network, rollout and evaluation; the math, checkpoints and command line are shared.
+    # Atari has its own envs, network, rollout and evaluation, and anneals L^CLIP's clip range (minibatch_loss takes
+    # it); the rest of the math, checkpoints and command line are shared.
     ("ppo_atari.py", "ppo_continuous.py"): {
         "Args",
+        "minibatch_loss",
         "make_envs",
         "Agent",
         "pick_device",
@@ -23,13 +25,12 @@ CHANGED_ON_PURPOSE = {
         "evaluate",
     },
 }
-# Everything below # EVALUATION that the scripts share: how a run ends early, its log, checkpoints and command line.
+# Everything below # MACHINERY that the scripts share: how a run ends early, its log, checkpoints and command line.
 MACHINERY = {"Stopped", "Diverged", "Log", "load_checkpoint", "main"}
 MUST_SHARE = {
     ("ppo_continuous.py", "ppo_kl_penalty.py"): {
         "compute_gae",
         "value_loss",
-        "gradient_step",
         "make_env",
         "make_envs",
         "layer_init",
@@ -44,8 +45,6 @@ MUST_SHARE = {
         "compute_gae",
         "clipped_surrogate_loss",
         "value_loss",
-        "minibatch_loss",
-        "gradient_step",
         "layer_init",
         "save_checkpoint",
         *MACHINERY,
@@ -57,7 +56,9 @@ MUST_SHARE = {
 # Under torchrun (issue 53), Atari has no normalizers to merge after the rollout and films on rank 0 only (3 lines),
 # and the KL penalty's batch KL is over every rank's share (1 line).
 TRAIN_DIFF = {("ppo_atari.py", "ppo_continuous.py"): 46 + 8 + 3, ("ppo_continuous.py", "ppo_kl_penalty.py"): 17 + 8 + 1}
-SECTIONS = ["# THE MATH", "# ENVIRONMENT", "# AGENT", "# TRAINING", "# EVALUATION", "# MACHINERY"]
+# The lesson first: the math, Algorithm 1 in train(), the network and the envs it uses; then, under one heading, what
+# running it takes (many processes, evaluation, logs, checkpoints, argument checks, main()).
+SECTIONS = ["# THE MATH", "# TRAINING", "# AGENT", "# ENVIRONMENT", "# MACHINERY"]
 
 
 def top_level_sources(script):
@@ -110,15 +111,19 @@ def test_the_diff_measure_can_fail():
 def test_sections_come_in_the_same_order(script):
     source = (ROOT / script).read_text()
     names = list(top_level_sources(script))
-    # ppo_rlhf.py has no saved policy to evaluate in an env, so no EVALUATION section, and no `evaluate` that means
-    # something else; the others run a saved checkpoint there.
-    sections = SECTIONS if script != "ppo_rlhf.py" else [s for s in SECTIONS if s != "# EVALUATION"]
+    # ppo_rlhf.py has no env to step a saved policy in, so no `evaluate`, and sections of its own before its
+    # MACHINERY; the gym scripts share theirs.
+    sections = SECTIONS if script != "ppo_rlhf.py" else ["# THE MATH", "# MACHINERY"]
     assert ("evaluate" in names) == (script != "ppo_rlhf.py")
     positions = [source.find(f"\n{section}") for section in sections]
     assert -1 not in positions and positions == sorted(positions), dict(zip(sections, positions, strict=True))
-    order = ["Args", "compute_gae", "Agent", "train", "evaluate", "load_checkpoint", "check_args", "main"]
-    indices = [names.index(name) for name in order if name in names]
-    assert indices == sorted(indices) and len(indices) == len(order) - (script == "ppo_rlhf.py"), indices
+    order = ["Args", "compute_gae", "train", "Agent", "evaluate", "load_checkpoint", "check_args", "main"]
+    if script == "ppo_rlhf.py":
+        order = ["Args", "compute_gae", "train_ppo", "load_checkpoint", "check_args", "main"]
+    indices = [names.index(name) for name in order]
+    assert indices == sorted(indices), indices
+    machinery = source.find("\n# MACHINERY")
+    assert all(source.find(f"\ndef {name}(") < machinery for name in ("train", "compute_gae")), "the lesson first"
 
 
 @pytest.mark.parametrize("script", SCRIPTS)

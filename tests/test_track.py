@@ -48,7 +48,7 @@ def test_resume_with_track_continues_the_same_wandb_run(tmp_path):
     env = wandb_env(tmp_path, WANDB_MODE="offline")
     script = "ppo_continuous.py"
     run(script, "--track", "--run-dir", "r1", cwd=tmp_path, env=env)
-    run(script, "--track", "--resume", "r1/checkpoint.pt", "--total-timesteps", "256", cwd=tmp_path, env=env)
+    run(script, "--track", "--resume", "r1/checkpoint.pt", "--save-every", "3", cwd=tmp_path, env=env)
     assert len(offline_runs(tmp_path, "r1")) == 2, "two processes, one W&B run id: the run directory's name"
 
 

@@ -1,0 +1,232 @@
+"""The changes a learner makes after pasting a gym script into a project, each of which once met a trap: a new flag
+whose default is 0, a network of their own, a flag typed on --resume, a renamed copy, an env of their own filmed with
+--capture-video, and one more quantity stored in the rollout. Each test makes the change as a user would, on the real
+script or on a copy of it, and runs it."""
+
+import dataclasses
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli, train_tiny
+
+GYM_SCRIPTS = ["ppo_continuous.py", "ppo_atari.py", "ppo_kl_penalty.py"]
+MUJOCO_SCRIPTS = ["ppo_continuous.py", "ppo_kl_penalty.py"]
+
+
+def copy_of(script, path, after=None, insert=""):
+    """A copy of a script at `path`, with the lines `insert` added after the first line that contains `after`."""
+    lines = (ROOT / script).read_text().splitlines(keepends=True)
+    if after is not None:
+        at = next((i for i, line in enumerate(lines) if after in line), None)
+        assert at is not None, f"{script} has no line with {after!r} to add a line after"
+        indent = lines[at][: len(lines[at]) - len(lines[at].lstrip())]
+        lines[at + 1 : at + 1] = [indent + line + "\n" for line in insert.splitlines()]
+    path.write_text("".join(lines))
+    return path
+
+
+def run_copy(path, *args, cwd, env=None, check=True):
+    cmd = [sys.executable, str(path), *map(str, args), *ONE_THREAD]
+    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=300, env=env)
+    if check:
+        assert proc.returncode == 0, proc.stderr
+    return proc
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_new_float_flag_at_zero_is_accepted_unless_a_range_is_declared(script, monkeypatch):
+    module = load_script(script)
+
+    @dataclasses.dataclass
+    class WithAuxLoss(module.Args):
+        aux_coef: float = 0.0  # a learner's new coefficient, off by default
+
+    monkeypatch.setattr(module, "Args", WithAuxLoss)  # load_checkpoint and check_args see the learner's Args
+    module.check_args(WithAuxLoss(env_id=TINY[script]["env_id"]))
+    module.check_args(WithAuxLoss(env_id=TINY[script]["env_id"], aux_coef=-2.5))
+    with pytest.raises(ValueError, match="--aux-coef must be a finite number"):
+        module.check_args(WithAuxLoss(env_id=TINY[script]["env_id"], aux_coef=float("nan")))
+    monkeypatch.setitem(module.RANGES, "aux_coef", (0, 1))  # a declared range is checked
+    with pytest.raises(ValueError, match=r"--aux-coef must be in \[0, 1\]"):
+        module.check_args(WithAuxLoss(env_id=TINY[script]["env_id"], aux_coef=-2.5))
+
+
+def test_evaluation_uses_the_agents_own_method(tmp_path, monkeypatch):
+    """A learner's network with other attribute names: evaluation acts through get_action_and_value, the one method
+    that training uses too, and takes the mean of the distribution it returns."""
+    module = load_script("ppo_continuous.py")
+
+    class RenamedAgent(module.Agent):
+        def __init__(self, obs_dim, act_dim, norm_obs=True):
+            super().__init__(obs_dim, act_dim, norm_obs)
+            self.policy_net = self.actor_mean
+            del self.actor_mean
+
+        def get_action_and_value(self, obs, action=None):
+            probs = module.Independent(module.Normal(self.policy_net(obs), self.actor_logstd.exp()), 1)
+            action = probs.sample() if action is None else action
+            return action, probs.log_prob(action), probs, self.get_value(obs)
+
+    monkeypatch.setattr(module, "Agent", RenamedAgent)
+    tiny = dict(num_steps=64, minibatch_size=32, update_epochs=1, total_timesteps=64)
+    args = module.Args(env_id="Pendulum-v1", run_dir=str(tmp_path / "run"), **tiny)
+    module.train(args)
+    eval_args = module.Args(eval_checkpoint=str(tmp_path / "run" / "checkpoint.pt"), eval_episodes=1)
+    returns = module.evaluate(eval_args)
+    assert len(returns) == 1 and returns[0] < 0  # Pendulum's rewards are never positive
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_hyperparameter_typed_with_resume_is_refused_and_a_runtime_flag_applied(script, tmp_path, monkeypatch):
+    run_dir, _ = train_tiny(script, tmp_path)
+    checkpoint = run_dir / "checkpoint.pt"
+    proc = run_cli(script, "--resume", checkpoint, "--learning-rate", "0.123", cwd=tmp_path, check=False)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert "--learning-rate 0.123" in lines[0] and "resumed run keeps" in lines[0], lines[0]
+    # The checkpoint's own value typed again changes nothing, and a runtime flag reaches train().
+    module = load_script(script)
+    lr = torch.load(checkpoint, weights_only=True)["args"]["learning_rate"]
+    argv = [script, "--resume", str(checkpoint), "--learning-rate", str(lr), "--save-every", "7", *ONE_THREAD]
+    trained = []
+    monkeypatch.setattr(sys, "argv", argv)
+    monkeypatch.setattr(
+        module, "train", lambda args, stop=(): trained.append(module.load_checkpoint(args.resume, args))
+    )
+    monkeypatch.setattr(module.signal, "signal", lambda *args: None)  # main()'s handlers stay out of pytest's way
+    module.main()
+    resumed = trained[0][1]
+    assert resumed.save_every == 7 and resumed.learning_rate == lr and resumed.run_dir == str(run_dir)
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_checkpoint_with_a_field_args_no_longer_has_is_refused_in_one_line(script, tmp_path):
+    run_dir, _ = train_tiny(script, tmp_path)
+    checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    checkpoint["args"]["aux_coef"] = 0.5  # written by a copy that had this flag
+    torch.save(checkpoint, tmp_path / "renamed-field.pt")
+    proc = run_cli(script, "--resume", tmp_path / "renamed-field.pt", cwd=tmp_path, check=False)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "aux_coef" in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_renamed_copy_resumes_its_own_checkpoints_and_refuses_another_scripts(script, tmp_path):
+    run_dir, _ = train_tiny(script, tmp_path)  # a run of the script under its own name; then the file is renamed
+    copy = copy_of(script, tmp_path / "my_ppo.py")
+    proc = run_copy(copy, "--resume", run_dir / "checkpoint.pt", cwd=tmp_path)
+    assert "saved" in proc.stdout
+    cfg = TINY[script]
+    run_copy(copy, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", tmp_path / "copy-run", cwd=tmp_path)
+    run_cli(script, "--resume", tmp_path / "copy-run" / "checkpoint.pt", cwd=tmp_path)  # and back
+    other = next(s for s in GYM_SCRIPTS if s != script)
+    other_run, _ = train_tiny(other, tmp_path, "other")
+    proc = run_copy(copy, "--resume", other_run / "checkpoint.pt", cwd=tmp_path, check=False)
+    assert proc.returncode == 2 and "not a checkpoint written by" in proc.stderr, proc.stderr
+
+
+MYPKG = '''
+import gymnasium as gym
+import numpy as np
+
+
+class MyEnv(gym.Env):
+    """A point on a line, pushed toward 0; drawn as a 32x48 picture. Not MuJoCo: it has no model."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+
+    def __init__(self, render_mode=None):
+        self.render_mode = render_mode
+        self.observation_space = gym.spaces.Box(-10.0, 10.0, (2,), np.float64)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x, self.t = self.np_random.uniform(-1, 1), 0
+        return np.array([self.x, 0.0]), {}
+
+    def step(self, action):
+        self.x += 0.1 * float(action[0])
+        self.t += 1
+        return np.array([self.x, self.t / 20]), -abs(self.x), False, self.t >= 20, {}
+
+    def render(self):
+        frame = np.zeros((32, 48, 3), dtype=np.uint8)
+        frame[:, int(np.clip(24 + 10 * self.x, 0, 47))] = 255
+        return frame
+
+
+gym.register("MyEnv-v0", entry_point=MyEnv, max_episode_steps=20)
+'''
+
+
+@pytest.mark.parametrize("script", MUJOCO_SCRIPTS)
+@pytest.mark.parametrize("how", ["import in the script", "module:id"])
+def test_capture_video_films_any_env_that_renders_rgb_array(script, how, tmp_path):
+    (tmp_path / "mypkg").mkdir()
+    (tmp_path / "mypkg" / "__init__.py").write_text(MYPKG)
+    if how == "import in the script":
+        copy = copy_of(script, tmp_path / "train.py", after="import torch.nn as nn", insert="import mypkg  # noqa")
+        env_id = "MyEnv-v0"
+    else:
+        copy = copy_of(script, tmp_path / "train.py")
+        env_id = "mypkg:MyEnv-v0"
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    tiny = "--num-steps 64 --minibatch-size 32 --update-epochs 1 --total-timesteps 128".split()
+    run_dir = tmp_path / "run"
+    run_copy(copy, "--env-id", env_id, *tiny, "--capture-video", "--run-dir", run_dir, cwd=tmp_path, env=env)
+    videos = sorted((run_dir / "videos").glob("*.mp4"))
+    assert videos and all(v.stat().st_size > 0 for v in videos)
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_new_rollout_quantity_is_one_line_of_storage(script, tmp_path, monkeypatch):
+    """One line declares the quantity beside the others, one line fills it in the rollout, and the update's
+    minibatches have it, shuffled with the rest."""
+    path = copy_of(
+        script,
+        tmp_path / "one_more.py",
+        after="buf.actions = torch.zeros(",
+        insert=("buf.step_number = torch.zeros((T, n), device=device)"),
+    )
+    path.write_text(
+        path.read_text().replace(
+            "                    buf.obs[step] = next_obs\n",
+            "                    buf.obs[step] = next_obs\n                    buf.step_number[step] = step\n",
+        )
+    )
+    module = load_script_at(path)
+    seen = []
+    real = module.minibatch_loss
+
+    def recording(agent, batch, mb_inds, *rest):
+        seen.append((batch["step_number"][mb_inds], batch["obs"][mb_inds]))
+        return real(agent, batch, mb_inds, *rest)
+
+    monkeypatch.setattr(module, "minibatch_loss", recording)
+    cfg = TINY[script]
+    args = module.Args(env_id=cfg["env_id"], run_dir=str(tmp_path / "run"), torch_threads=1)
+    flags = dict(zip(cfg["tiny"][::2], cfg["tiny"][1::2], strict=True))
+    for flag, value in flags.items():
+        field = flag[2:].replace("-", "_")
+        setattr(args, field, type(getattr(args, field))(value))
+    args.total_timesteps = args.num_envs * args.num_steps  # one iteration
+    module.train(args)
+    steps = torch.cat([s for s, _ in seen])
+    n = args.num_envs
+    assert sorted(steps.tolist()) == sorted(
+        [float(t) for t in range(args.num_steps) for _ in range(n)] * args.update_epochs
+    )
+
+
+def load_script_at(path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
