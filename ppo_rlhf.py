@@ -30,15 +30,15 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-SCRIPT = os.path.basename(__file__)
+SCRIPT = "ppo_rlhf.py"  # what a checkpoint names, not __file__'s: a renamed copy resumes its own, and this file's
 
 
 @dataclass
 class Args:
-    exp_name: str = SCRIPT[: -len(".py")]  # the name of this experiment, part of the run directory's name
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]  # this file's name: part of the run directory's name
     seed: int = 1  # seed of the grammar's samples and of torch: on the CPU, one seed gives one run
     device: str = "auto"  # torch device: auto, cpu, cuda, cuda:1, ... (auto: cuda when there is one)
-    compile: bool = False  # apply torch.compile to the PPO minibatch update
+    compile: bool = False  # apply torch.compile to the agent's forward, which rollouts and PPO's updates run
     torch_threads: int = 1  # torch CPU threads
     run_dir: str | None = None  # where logs and checkpoints go (None: runs/reviews__{exp_name}__{seed}__{time})
     track: bool = False  # mirror the TensorBoard scalars to Weights & Biases, as CleanRL's --track
@@ -130,29 +130,6 @@ def compute_gae(rewards, values, mask, gamma, gae_lambda):
     return advantages, advantages + values
 
 
-def group_advantages(rewards, mask, group_size, kind="grpo"):
-    """A critic-free advantage, at each token of a response: its summed reward minus a baseline from the other
-    responses to its prompt (a group: consecutive rows). grpo (Shao et al. 2024, arXiv:2402.03300, §4.1.2): minus the
-    group's mean, over the group's std; dr-grpo (Liu et al. 2025): without the std; rloo (Ahmadian et al. 2024): minus
-    the mean of the others. The KL penalty stays in the reward, as in PPO (DeepSeek's GRPO and TRL's add it to the
-    loss): so grpo's division scales it too, and its effective beta is beta / std of the group's rewards. The loss
-    averages over all the minibatch's tokens, as for PPO, where DeepSeekMath averages each response's tokens first (a
-    bias toward short responses, Liu et al. find: Dr. GRPO drops it too).
-
-    >>> r = torch.tensor([[1.0], [2.0], [6.0]])
-    >>> [group_advantages(r, torch.ones(3, 1), 3, kind).flatten().tolist() for kind in ("dr-grpo", "rloo")]
-    [[-2.0, -1.0, 3.0], [-3.0, -1.5, 4.5]]
-    """
-    returns = rewards.sum(1).view(-1, group_size)
-    baseline = returns.mean(1, keepdim=True)
-    if kind == "rloo":
-        baseline = (returns.sum(1, keepdim=True) - returns) / (group_size - 1)
-    advantages = returns - baseline
-    if kind == "grpo":
-        advantages = advantages / (returns.std(1, keepdim=True) + 1e-8)
-    return advantages.view(-1, 1) * mask
-
-
 def clipped_surrogate_loss(ratio, advantages, clip_coef, mask=None):
     """Minus L^CLIP, paper eq. (7): -E[min(r A, clip(r, 1 - eps, 1 + eps) A)], here over the masked tokens."""
     surr1 = ratio * advantages
@@ -160,12 +137,10 @@ def clipped_surrogate_loss(ratio, advantages, clip_coef, mask=None):
     return -masked_mean(torch.min(surr1, surr2), mask)
 
 
-def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True, mask=None):
-    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 over the masked tokens, optionally clipped (core
-    detail 9, not the paper's): the larger of the errors of V and of the old value moved at most clip_coef to V."""
+def value_loss(newvalue, oldvalue, returns, clip_coef, mask):
+    """L^VF of paper eq. (9), the squared error (V - V_targ)^2 over the masked tokens, clipped (core detail 9, not the
+    paper's): the larger of the errors of V and of the old value moved at most clip_coef to V."""
     v_loss_unclipped = (newvalue - returns) ** 2
-    if not clip_vloss:
-        return masked_mean(v_loss_unclipped, mask)
     v_clipped = oldvalue + torch.clamp(newvalue - oldvalue, -clip_coef, clip_coef)
     return masked_mean(torch.max(v_loss_unclipped, (v_clipped - returns) ** 2), mask)
 
@@ -173,18 +148,6 @@ def value_loss(newvalue, oldvalue, returns, clip_coef, clip_vloss=True, mask=Non
 def preference_loss(chosen_scores, rejected_scores):
     """The Bradley-Terry loss of a reward model, -log sigmoid(r_w - r_l), averaged over pairs."""
     return -F.logsigmoid(chosen_scores - rejected_scores).mean()
-
-
-def kto_loss(desirable, undesirable, z0, weights):
-    """KTO's loss (Ethayarajh et al. 2024, eq. (8)) from the implied rewards r = beta log(pi(y|x) / pi_SFT(y|x)) of
-    responses judged alone: lambda_D (1 - sigmoid(r - z0)) for a desirable one, lambda_U (1 - sigmoid(z0 - r)) for an
-    undesirable one, averaged over both. z0 is the reference point, beta KL[pi || pi_SFT] (dpo_update estimates it).
-
-    >>> kto_loss(torch.zeros(1), torch.zeros(2), 0.0, (1.0, 2.0))  # (1 x 0.5 + 2 x 2 x 0.5) / 3
-    tensor(0.8333)
-    """
-    losses = [weights[0] * (1 - torch.sigmoid(desirable - z0)), weights[1] * (1 - torch.sigmoid(z0 - undesirable))]
-    return torch.cat(losses).mean()
 
 
 def pairwise_accuracy(scores, gold, prompts):
@@ -231,11 +194,10 @@ def sample_review(rng):
         modifier = rng.choice(["", "", "very", "not"])
         words = ["the", rng.choice(NOUNS), "was", modifier, rng.choice(list(VALENCE))]
         clause = " ".join(word for word in words if word)
-        if clause in clauses:
-            continue
-        clauses.append(clause)
-        if rng.random() < 0.5:
-            break
+        if clause not in clauses:
+            clauses.append(clause)
+            if rng.random() < 0.5:
+                break
     return " and ".join(clauses).split() + ["<eos>"]
 
 
@@ -325,21 +287,6 @@ class TinyLM(nn.Module):
         return self(tokens)[1][torch.arange(len(tokens)), PROMPT_LENGTH + mask.sum(1).long() - 1]
 
 
-class Ensemble(nn.ModuleList):
-    """--rm-ensemble K reward models as one (Coste et al. 2023): the mean of their scores, the minimum (worst case), or
-    uwo, the mean minus lambda times their variance (uncertainty-weighted). members=True: each member's [K, B]."""
-
-    def __init__(self, members, args):
-        super().__init__(members)
-        self.args = args
-
-    def score(self, tokens, mask, members=False):
-        scores = torch.stack([reward_model.score(tokens, mask) for reward_model in self])
-        aggregates = {"mean": scores.mean(0), "min": scores.min(0).values}
-        aggregates["uwo"] = scores.mean(0) - self.args.uwo_coef * scores.var(0)
-        return scores if members else aggregates[self.args.rm_ensemble_agg]
-
-
 class Agent(nn.Module):
     """The policy pi_theta, started from pi_SFT, and its value function: by default a critic started from the RM,
     which reads responses as the RM does and cannot pull on the policy's weights; or a head on the policy (faster)."""
@@ -370,13 +317,6 @@ def response_dist(logits, temperature):
 
 
 # TRAINING
-def report(stage, done, total, start, text, first=0):
-    """A progress line at each tenth of a stage and at its end, with the stage's ETA."""
-    if done % max(total // 10, 1) == 0 or done == total:
-        eta = (total - done) * (time.time() - start) / max(done - first, 1) / 60
-        print(f"{stage} {done:,}/{total:,} | {text} | ETA {eta:.1f} min", flush=True)
-
-
 def fit(model, loss_fn, steps, learning_rate, stage, stop, saved):
     """Stages 1 and 2: `steps` Adam steps on loss_fn(step), with the loss in the progress lines. `saved`: what a stop
     leaves on disk, and how to go on from it."""
@@ -423,9 +363,8 @@ def preference_pairs(sft, args, device):
     gold, _ = gold_scores(tokens, mask)
     # The two responses to a prompt, rows 2i and 2i + 1: the gold reward chooses, and ties are dropped.
     a = torch.arange(0, 2 * n, 2, device=device)[gold[0::2] != gold[1::2]]
-    b = a + 1
-    chosen = torch.where(gold[a] > gold[b], a, b)
-    rejected = torch.where(gold[a] > gold[b], b, a)
+    chosen = a + (gold[a + 1] > gold[a])
+    rejected = a + (gold[a] > gold[a + 1])
     n_train = len(chosen) - len(chosen) // 10
     if n_train == len(chosen):
         raise Diverged(f"only {len(chosen)} pairs differ in gold reward: raise --sft-steps or --rm-pairs")
@@ -490,22 +429,6 @@ def rollout(agent, reference, reward_model, args):
     return batch | forms | {"gold": gold, "has_eos": has_eos.float(), "entropy": dist.entropy()}
 
 
-def response_stats(batch, pool):
-    """What a batch of responses shows: its scores, its KL to pi_SFT (per response, in nats), its forms; and how often
-    the RM ranks as gold does the pairs in `pool`, (RM scores, gold, prompts) of the policy's recent responses."""
-    mask = batch["mask"]
-    stats = {"score": batch["scores"].mean(), "gold_score": batch["gold"].mean()}
-    stats["kl"] = ((batch["logprobs"] - batch["ref_logprobs"]) * mask).sum(1).mean()
-    stats |= {name: batch[name].mean() for name in ("well_formed", "spam", "garbled")}
-    stats["entropy"] = masked_mean(batch["entropy"], mask)
-    stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
-    stats["rm_accuracy"], stats["rm_pairs"] = pairwise_accuracy(*pool)
-    if "rm_members" in batch:  # an ensemble's members, each's mean score, and their disagreement (their std)
-        stats |= {f"rm_member{k}": score.mean() for k, score in enumerate(batch["rm_members"].T)}
-        stats["rm_disagreement"] = batch["rm_members"].std(1).mean()
-    return {f"rlhf/{name}": value.item() for name, value in stats.items()}
-
-
 def gradient_step(agent, optimizer, loss, args):
     optimizer.zero_grad()
     loss.backward()
@@ -513,85 +436,49 @@ def gradient_step(agent, optimizer, loss, args):
     optimizer.step()
 
 
-def sequence_logprobs(lm, tokens, mask, temperature):
-    """log pi(y|x) of each whole response [B]: the sum of its tokens' log-probs."""
-    return (response_dist(lm(tokens)[0], temperature).log_prob(tokens[:, PROMPT_LENGTH:]) * mask).sum(1)
-
-
-def dpo_pairs(reference, args, device):
-    """DPO's data: the reward model's training pairs, with pi_SFT's log-prob of each response, computed once. KTO also
-    takes "kl", mismatched pairs (each pair's prompt, the previous pair's response) for its reference point, and "kept",
-    the pairs whose chosen response it keeps (--kto-desirable-share)."""
-    tokens, mask, chosen, rejected, n_train = preference_pairs(reference, args, device)
-    pairs = {"kept": torch.arange(n_train, device=device) < args.kto_desirable_share * n_train}
-    sides = [("chosen", chosen[:n_train]), ("rejected", rejected[:n_train])]
-    sides += [("kl", rejected[:n_train].roll(1))] if args.kto else []
-    for side, rows in sides:
-        pairs |= {f"{side}_tokens": tokens[rows], f"{side}_mask": mask[rows]}
-        pairs[f"{side}_tokens"][:, :PROMPT_LENGTH] = tokens[chosen[:n_train], :PROMPT_LENGTH]  # the pair's prompt
-        logprobs = sequence_logprobs(reference, pairs[f"{side}_tokens"], mask[rows], args.temperature)
-        pairs[f"{side}_ref"] = logprobs.detach()
-    return pairs
-
-
-def dpo_update(agent, optimizer, mb, args):
-    """A minibatch step of DPO (Rafailov et al. 2023, eq. (7)): the reward model's own Bradley-Terry loss on its own
-    pairs, with beta log(pi(y|x) / pi_SFT(y|x)), the reward that pi* of compute_rewards' objective implies, in place of
-    the RM's score. DPO removes the reward model and the rollouts, and keeps the objective: E[r] - beta KL. --kto: each
-    response judged alone against KTO's reference point z0, the mismatched pairs' mean implied reward (detached and
-    clamped at 0, as TRL's KTOTrainer estimates beta KL), the chosen ones desirable and the rejected ones not."""
-    implicit = {}
-    for side in ("chosen", "rejected", "kl") if args.kto else ("chosen", "rejected"):
-        with torch.set_grad_enabled(side != "kl"):
-            logprobs = sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"], args.temperature)
-        implicit[side] = args.kl_coef * (logprobs - mb[f"{side}_ref"])
-    if args.kto:
-        z0 = implicit["kl"].mean().clamp(min=0)
-        loss = kto_loss(implicit["chosen"][mb["kept"]], implicit["rejected"], z0, args.kto_weights)
-    elif args.ipo:  # a margin with a target, where DPO's loss falls as long as the margin grows, without bound
-        loss = (((implicit["chosen"] - implicit["rejected"]) / args.kl_coef - 1 / (2 * args.kl_coef)) ** 2).mean()
-    else:
-        loss = preference_loss(implicit["chosen"], implicit["rejected"])
-    gradient_step(agent, optimizer, loss, args)
-    accuracy = (implicit["chosen"] > implicit["rejected"]).float().mean()  # how often pi prefers the chosen
-    return {"loss": loss.detach(), "policy_loss": loss.detach(), "implicit_accuracy": accuracy}
-
-
-def ppo_update(agent, optimizer, mb, args):
-    """A minibatch step on minus L^CLIP + c1 L^VF (eq. (9) without its entropy bonus), over the masked tokens only."""
+def policy_loss(logits, mb, args):
+    """Minus L^CLIP over a minibatch's masked tokens, from the policy's logits, and what the update logs of it."""
     mask = mb["mask"]
-    logits, newvalues = agent(mb["tokens"])
     dist = response_dist(logits, args.temperature)
     # Masked before exp: the log-ratio at a PAD position is 0, whatever the old log-prob stored there.
     logratio = (dist.log_prob(mb["responses"]) - mb["logprobs"]) * mask
     ratio = logratio.exp()  # r_t(theta), paper eq. (6)
     pg_loss = clipped_surrogate_loss(ratio, mb["advantages"], args.clip_coef, mask)
-    v_loss = value_loss(newvalues[:, PROMPT_LENGTH - 1 : -1], mb["values"], mb["returns"], args.clip_coef, True, mask)
-    # A group baseline has no critic to fit: its loss is L^CLIP alone, and it logs no value loss.
-    loss = pg_loss + args.vf_coef * v_loss if args.advantage == "gae" else pg_loss
-    gradient_step(agent, optimizer, loss, args)
     # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[old, new].
     stats = {"policy_loss": pg_loss, "entropy": masked_mean(dist.entropy(), mask)}
-    stats |= {"value_loss": v_loss} if args.advantage == "gae" else {}
     stats |= {"old_approx_kl": masked_mean(-logratio, mask), "approx_kl": masked_mean((ratio - 1) - logratio, mask)}
-    stats |= {"clipfrac": masked_mean(((ratio - 1.0).abs() > args.clip_coef).float(), mask), "loss": loss}
-    return {name: stat.detach() for name, stat in stats.items()}
+    stats["clipfrac"] = masked_mean(((ratio - 1.0).abs() > args.clip_coef).float(), mask)
+    return pg_loss, stats
+
+
+def ppo_update(agent, optimizer, mb, args):
+    """A minibatch step on minus L^CLIP + c1 L^VF (eq. (9) without its entropy bonus), over the masked tokens only."""
+    logits, newvalues = agent(mb["tokens"])
+    pg_loss, stats = policy_loss(logits, mb, args)
+    v_loss = value_loss(newvalues[:, PROMPT_LENGTH - 1 : -1], mb["values"], mb["returns"], args.clip_coef, mb["mask"])
+    loss = pg_loss + args.vf_coef * v_loss
+    gradient_step(agent, optimizer, loss, args)
+    return {name: stat.detach() for name, stat in (stats | {"value_loss": v_loss, "loss": loss}).items()}
+
+
+def minibatches(data, args, device):
+    """K epochs over the batch `data`, each a new shuffle cut into minibatches (core detail 6)."""
+    for _ in range(args.update_epochs):
+        for mb_inds in torch.randperm(args.batch_size, device=device).split(args.minibatch_size):
+            yield {key: value[mb_inds] for key, value in data.items()}
 
 
 def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer):
-    """Stage 3: PPO-Clip, with the rewards of compute_rewards: the RM's score and the KL penalty to pi_SFT; or, with
-    --dpo, DPO's updates on the RM's pairs, each iteration's rollout then only measuring pi."""
+    """Stage 3: PPO-Clip, with the rewards of compute_rewards: the RM's score and the KL penalty to pi_SFT. Or one of
+    PPO's successors (after this path) in its update's place: a group baseline (--advantage), DPO, IPO or KTO."""
     reference = sft.requires_grad_(False)  # pi_SFT, frozen
-    # GRPO, Dr. GRPO, RLOO and DPO train no value function
-    value_model = args.value_model if args.advantage == "gae" and not (args.dpo or args.kto) else "policy-head"
-    agent = Agent(sft, reward_model.requires_grad_(False), value_model).requires_grad_(True)
+    ppo = args.advantage == "gae" and not (args.dpo or args.kto)  # PPO's successors here fit no value function
+    agent = Agent(sft, reward_model.requires_grad_(False), args.value_model if ppo else "policy-head")
+    agent.requires_grad_(True)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)  # core detail 3
     num_iterations = args.total_episodes // args.batch_size
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     kl_coef = checkpoint["kl_coef"] if checkpoint else args.kl_coef
-    # The RM's accuracy is measured on the last POOL responses (an older checkpoint's pool, without prompts, is dropped)
-    pool = checkpoint["rm_pool"] if checkpoint and len(checkpoint["rm_pool"]) == 3 else torch.zeros(3, 0, device=device)
-    start_iteration = checkpoint["iteration"] + 1 if checkpoint else 1
     # DPO's pairs are stage 2's, drawn with stage 2's seed: before stage 3's random state is set or restored
     pairs = dpo_pairs(reference, args, device) if args.dpo or args.kto else None
     torch.manual_seed(args.seed + 2)
@@ -600,13 +487,12 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         optimizer.load_state_dict(checkpoint["optimizer"])
         torch.set_rng_state(checkpoint["torch_rng_state"])
         print(f"resuming {run_dir} at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})")
-    update = dpo_update if pairs else torch.compile(ppo_update) if args.compile else ppo_update
-    table = "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items())
-    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
-    start_time = time.time()
+    if args.compile:  # in place: the calls below, and the names in the checkpoint, stay the module's
+        agent.compile()
+    log = Log(writer, args, checkpoint, device)
 
     # ALGORITHM 1, with prompts for actors: for iteration = 1, 2, ...
-    for iteration in range(start_iteration, num_iterations + 1):
+    for iteration in range(checkpoint["iteration"] + 1 if checkpoint else 1, num_iterations + 1):
         # ROLLOUT: a response to each prompt from pi_theta_old, scored by the reward model.
         batch = rollout(agent, reference, reward_model, args)
         global_step = iteration * args.batch_size
@@ -614,61 +500,32 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         # REWARDS AND ADVANTAGES: the KL penalty at every token and the score at the EOS, then GAE over tokens.
         mask = batch["mask"]
         rewards = compute_rewards(batch["scores"], batch["logprobs"], batch["ref_logprobs"], mask, kl_coef)
-        data = batch  # what the update learns from: the rollout, or DPO's pairs
-        if pairs:  # DPO, KTO: no advantages, a batch of the reward model's training pairs, drawn anew each iteration
-            rows = torch.randint(len(pairs["chosen_ref"]), (args.batch_size,), device=device)
-            data = {key: value[rows] for key, value in pairs.items()}
-        elif args.advantage == "gae":
+        if ppo:
             advantages, batch["returns"] = compute_gae(rewards, batch["values"], mask, args.gamma, args.gae_lambda)
             # Whitened once over the batch's tokens; Ziegler et al.'s code, like core detail 7, whitens each minibatch.
             mean = masked_mean(advantages, mask)
             std = masked_mean((advantages - mean) ** 2, mask).sqrt()
             batch["advantages"] = (advantages - mean) / (std + 1e-8) * mask
-        else:  # a group baseline stands in for the critic; no value function is fitted
-            batch["advantages"] = group_advantages(rewards, mask, args.group_size, args.advantage)
-            batch["returns"] = batch["values"]
+            # UPDATE: K epochs of minibatch gradient descent, a new shuffle each epoch (core detail 6).
+            update_stats = [ppo_update(agent, optimizer, mb, args) for mb in minibatches(batch, args, device)]
+        elif pairs is None:  # GRPO, Dr. GRPO, RLOO (after PPO's path): a group's baseline for the critic and GAE
+            update_stats = group_baseline_update(agent, optimizer, batch, rewards, args, device)
+        else:  # DPO, IPO, KTO (after PPO's path): a loss on the reward model's own pairs; the rollout only measures
+            update_stats = preference_update(agent, optimizer, pairs, args, device)
 
-        # UPDATE: K epochs of minibatch gradient descent, a new shuffle each epoch (core detail 6).
-        update_stats = []
-        for _ in range(args.update_epochs):
-            for mb_inds in torch.randperm(args.batch_size, device=device).split(args.minibatch_size):
-                update_stats.append(update(agent, optimizer, {k: v[mb_inds] for k, v in data.items()}, args))
-
-        # LOGGING: the mean over every minibatch of the update, and what the rollout's responses show.
-        losses = {name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]}
-        if args.advantage == "gae" and not pairs:  # a critic was fitted
-            returns = batch["returns"][mask.bool()]
-            losses["explained_variance"] = (1 - (returns - batch["values"][mask.bool()]).var() / returns.var()).item()
-        prompts = (batch["tokens"][:, 2] * len(WORDS) + batch["tokens"][:, 4]).float()  # its NOUN and ADJ, one number
-        pool = torch.cat([pool, torch.stack([batch["scores"], batch["gold"], prompts])], 1)[:, -POOL:]
-        stats = response_stats(batch, pool)
-        sps = (iteration - start_iteration + 1) * args.batch_size / (time.time() - start_time)
-        scalars = {f"losses/{name}": value for name, value in losses.items()} | stats
-        scalars |= {"rlhf/kl_coef": kl_coef, "charts/SPS": sps, "charts/episodic_length": stats["rlhf/response_length"]}
-        scalars |= {"charts/episodic_return": rewards.sum(1).mean().item(), "charts/learning_rate": args.learning_rate}
-        for name, value in scalars.items():
-            writer.add_scalar(name, value, global_step)
+        # LOGGING (and samples, at a checkpoint), then Ziegler et al.'s controller: beta from this iteration's KL.
+        save = stop or iteration % args.save_every == 0 or iteration == num_iterations
+        scalars = log.update(iteration, batch, rewards, update_stats, kl_coef, save)
         if args.adaptive_kl:
-            kl_coef = adapt_kl_coef(kl_coef, stats["rlhf/kl"], args.kl_target, args.batch_size, args.kl_horizon)
-        text = " | ".join(
-            f"{name} {stats[f'rlhf/{name}']:+.2f}" for name in ("score", "gold_score", "kl", "rm_accuracy")
-        )
-        text += f" | beta {kl_coef:.3g} | SPS {sps:.0f}"
-        stage = f"stage 3, {'KTO' if args.kto else 'DPO' if args.dpo else 'PPO'}: iteration"
-        report(stage, iteration, num_iterations, start_time, text, start_iteration - 1)
+            kl_coef = adapt_kl_coef(kl_coef, scalars["rlhf/kl"], args.kl_target, args.batch_size, args.kl_horizon)
 
         # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
-        if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
+        if not (math.isfinite(scalars["losses/loss"]) and all(p.isfinite().all() for p in agent.parameters())):
             raise Diverged(f"loss or weights not finite after iteration {iteration}; try a smaller --learning-rate")
-        if stop or iteration % args.save_every == 0 or iteration == num_iterations:
-            # The responses the reward model scores highest, which the policy is pulled toward, beside their gold.
-            for i in batch["scores"].argsort(descending=True)[:3].tolist():
-                text = " ".join(WORDS[t] for t in batch["tokens"][i].tolist() if t not in (PAD, BOS))
-                print(f"  score {batch['scores'][i]:+.2f} | gold {batch['gold'][i]:+3.0f} | {text}")
-            writer.flush()  # the curve on disk reaches at least the checkpoint's step
-            state = {"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "kl_coef": kl_coef}
-            state |= {"reference": reference.state_dict(), "reward_model": reward_model.state_dict(), "rm_pool": pool}
-            state |= {"global_step": global_step, "iteration": iteration, "torch_rng_state": torch.get_rng_state()}
+        if save or stop:
+            state = dict(agent=agent.state_dict(), optimizer=optimizer.state_dict(), reference=reference.state_dict())
+            state |= dict(reward_model=reward_model.state_dict(), rm_pool=log.pool, kl_coef=kl_coef)
+            state |= dict(global_step=global_step, iteration=iteration, torch_rng_state=torch.get_rng_state())
             save_checkpoint(checkpoint_path, "ppo", args, **state)
         if stop:
             raise Stopped(f"stopped at step {global_step:,}; continue with --resume {checkpoint_path}")
@@ -696,15 +553,206 @@ def train(args, stop=()):
         return train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer)
 
 
-# MACHINERY. A run ends early Stopped (Ctrl-C or SIGTERM, after a checkpoint) or Diverged (last finite one kept).
+# PPO'S SUCCESSORS, each under its own name: GRPO, Dr. GRPO and RLOO put a group's baseline in the critic's place, DPO,
+# IPO and KTO a loss on the RM's pairs in the rollouts', and an ensemble of reward models scores in the RM's.
+def grpo_advantages(returns):
+    """GRPO's advantage (Shao et al. 2024, arXiv:2402.03300, §4.1.2) of each response, from the summed rewards [G, K]
+    of G groups of K responses to one prompt: its return minus its group's mean, over the group's std. The KL penalty
+    stays in the reward, as in PPO (DeepSeek's GRPO and TRL's add it to the loss): so the division scales it too, and
+    its effective beta is beta / std of the group's rewards. The loss averages over all the minibatch's tokens, as for
+    PPO, where DeepSeekMath averages each response's tokens first (a bias toward short responses, Liu et al. find: Dr.
+    GRPO drops it too)."""
+    return (returns - returns.mean(1, keepdim=True)) / (returns.std(1, keepdim=True) + 1e-8)
+
+
+def dr_grpo_advantages(returns):
+    """Dr. GRPO's (Liu et al. 2025): GRPO's without the division by the std.
+
+    >>> dr_grpo_advantages(torch.tensor([[1.0, 2.0, 6.0]])), rloo_advantages(torch.tensor([[1.0, 2.0, 6.0]]))
+    (tensor([[-2., -1.,  3.]]), tensor([[-3.0000, -1.5000,  4.5000]]))
+    """
+    return returns - returns.mean(1, keepdim=True)
+
+
+def rloo_advantages(returns):
+    """RLOO's (Ahmadian et al. 2024): a response's return minus the mean of the others' in its group, Dr. GRPO's
+    advantage times K / (K - 1)."""
+    return returns - (returns.sum(1, keepdim=True) - returns) / (returns.shape[1] - 1)
+
+
+def group_baseline_update(agent, optimizer, batch, rewards, args, device):
+    """The update of --advantage grpo, dr-grpo or rloo: PPO's, with a group's baseline in the critic's place (rollout
+    samples --group-size responses to each prompt) and no critic to fit: minus L^CLIP alone, and no value loss."""
+    kinds = {"grpo": grpo_advantages, "dr-grpo": dr_grpo_advantages, "rloo": rloo_advantages}
+    returns = rewards.sum(1).view(-1, args.group_size)  # each response's summed reward, a row for each group
+    batch["advantages"] = kinds[args.advantage](returns).view(-1, 1) * batch["mask"]
+    update_stats = []
+    for mb in minibatches(batch, args, device):
+        pg_loss, stats = policy_loss(agent(mb["tokens"])[0], mb, args)
+        gradient_step(agent, optimizer, pg_loss, args)
+        update_stats.append({name: stat.detach() for name, stat in (stats | {"loss": pg_loss}).items()})
+    return update_stats
+
+
+def sequence_logprobs(lm, tokens, mask, temperature):
+    """log pi(y|x) of each whole response [B]: the sum of its tokens' log-probs."""
+    return (response_dist(lm(tokens)[0], temperature).log_prob(tokens[:, PROMPT_LENGTH:]) * mask).sum(1)
+
+
+def dpo_pairs(reference, args, device):
+    """DPO's data: the reward model's training pairs, with pi_SFT's log-prob of each response, computed once. KTO also
+    takes "kl", mismatched pairs (each pair's prompt, the previous pair's response) for its reference point, and "kept",
+    the pairs whose chosen response it keeps (--kto-desirable-share)."""
+    tokens, mask, chosen, rejected, n_train = preference_pairs(reference, args, device)
+    pairs = {"kept": torch.arange(n_train, device=device) < args.kto_desirable_share * n_train}
+    sides = [("chosen", chosen[:n_train]), ("rejected", rejected[:n_train])]
+    sides += [("kl", rejected[:n_train].roll(1))] if args.kto else []
+    for side, rows in sides:
+        pairs |= {f"{side}_tokens": tokens[rows], f"{side}_mask": mask[rows]}
+        pairs[f"{side}_tokens"][:, :PROMPT_LENGTH] = tokens[chosen[:n_train], :PROMPT_LENGTH]  # the pair's prompt
+        logprobs = sequence_logprobs(reference, pairs[f"{side}_tokens"], mask[rows], args.temperature)
+        pairs[f"{side}_ref"] = logprobs.detach()
+    return pairs
+
+
+def preference_update(agent, optimizer, pairs, args, device):
+    """The update of --dpo (--ipo) or --kto: dpo_update on minibatches of --batch-size of the RM's pairs, drawn anew."""
+    rows = torch.randint(len(pairs["chosen_ref"]), (args.batch_size,), device=device)
+    data = {key: value[rows] for key, value in pairs.items()}
+    return [dpo_update(agent, optimizer, mb, args) for mb in minibatches(data, args, device)]
+
+
+def dpo_update(agent, optimizer, mb, args):
+    """A minibatch step of DPO (Rafailov et al. 2023, eq. (7)): the reward model's own Bradley-Terry loss on its own
+    pairs, with beta log(pi(y|x) / pi_SFT(y|x)), the reward that pi* of compute_rewards' objective implies, in place of
+    the RM's score. DPO removes the reward model and the rollouts, and keeps the objective: E[r] - beta KL. With --ipo
+    or --kto, ipo_loss or kto_loss on the same implied rewards."""
+    implicit = {}
+    for side in ("chosen", "rejected", "kl") if args.kto else ("chosen", "rejected"):
+        with torch.set_grad_enabled(side != "kl"):  # KTO's mismatched pairs, for its reference point: no gradient
+            logprobs = sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"], args.temperature)
+        implicit[side] = args.kl_coef * (logprobs - mb[f"{side}_ref"])
+    if args.kto:
+        loss = kto_loss(implicit["chosen"][mb["kept"]], implicit["rejected"], implicit["kl"], args.kto_weights)
+    elif args.ipo:
+        loss = ipo_loss(implicit["chosen"], implicit["rejected"], args.kl_coef)
+    else:
+        loss = preference_loss(implicit["chosen"], implicit["rejected"])
+    gradient_step(agent, optimizer, loss, args)
+    accuracy = (implicit["chosen"] > implicit["rejected"]).float().mean()  # how often pi prefers the chosen
+    return {"loss": loss.detach(), "policy_loss": loss.detach(), "implicit_accuracy": accuracy}
+
+
+def ipo_loss(chosen, rejected, beta):
+    """IPO's loss (Azar et al. 2023) on the implied rewards of pairs: the log-ratio margin's squared distance from
+    1 / (2 beta), a margin with a target, where DPO's loss falls as long as the margin grows, without bound."""
+    return (((chosen - rejected) / beta - 1 / (2 * beta)) ** 2).mean()
+
+
+def kto_loss(desirable, undesirable, mismatched, weights):
+    """KTO's loss (Ethayarajh et al. 2024, eq. (8)) from the implied rewards r = beta log(pi(y|x) / pi_SFT(y|x)) of
+    responses judged alone: lambda_D (1 - sigmoid(r - z0)) for a desirable one, lambda_U (1 - sigmoid(z0 - r)) for an
+    undesirable one, averaged over both. z0 is the reference point, beta KL[pi || pi_SFT]: the mismatched pairs' mean
+    implied reward, clamped at 0, as TRL's KTOTrainer estimates it.
+
+    >>> kto_loss(torch.zeros(1), torch.zeros(2), torch.zeros(1), (1.0, 2.0))  # (1 x 0.5 + 2 x 2 x 0.5) / 3
+    tensor(0.8333)
+    """
+    z0 = mismatched.mean().clamp(min=0)
+    losses = [weights[0] * (1 - torch.sigmoid(desirable - z0)), weights[1] * (1 - torch.sigmoid(z0 - undesirable))]
+    return torch.cat(losses).mean()
+
+
+class Ensemble(nn.ModuleList):
+    """--rm-ensemble K reward models as one (Coste et al. 2023): the mean of their scores, the minimum (worst case), or
+    uwo, the mean minus lambda times their variance (uncertainty-weighted). members=True: each member's [K, B]."""
+
+    def __init__(self, members, args):
+        super().__init__(members)
+        self.args = args
+
+    def score(self, tokens, mask, members=False):
+        scores = torch.stack([reward_model.score(tokens, mask) for reward_model in self])
+        aggregates = {"mean": scores.mean(0), "min": scores.min(0).values}
+        aggregates["uwo"] = scores.mean(0) - self.args.uwo_coef * scores.var(0)
+        return scores if members else aggregates[self.args.rm_ensemble_agg]
+
+
+# MACHINERY: what running the algorithm takes, and teaches nothing of it: how a run ends early (Stopped by Ctrl-C or
+# SIGTERM, after a checkpoint, or Diverged, the last finite one kept), logs, checkpoints, argument checks, main().
 class Stopped(Exception): ...
 
 
 class Diverged(Exception): ...
 
 
-# A resumed run takes its hyperparameters from the checkpoint, and how to run (RUNTIME_FIELDS) from the command line.
-RUNTIME_FIELDS = ("device", "compile", "torch_threads", "save_every", "resume")
+def report(stage, done, total, start, text, first=0):
+    """A progress line at each tenth of a stage and at its end, with the stage's ETA."""
+    if done % max(total // 10, 1) == 0 or done == total:
+        eta = (total - done) * (time.time() - start) / max(done - first, 1) / 60
+        print(f"{stage} {done:,}/{total:,} | {text} | ETA {eta:.1f} min", flush=True)
+
+
+class Log:
+    """Stage 3's TensorBoard scalars and progress lines, and its pool: (RM score, gold, prompt) of the last POOL
+    responses, whose pairs measure the RM's accuracy (a checkpoint keeps it; an older one's, without prompts, not)."""
+
+    def __init__(self, writer, args, checkpoint, device):
+        table = "\n".join(f"|{k}|{v}|" for k, v in asdict(args).items())
+        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+        self.writer = writer
+        self.args = args
+        self.done = checkpoint["iteration"] if checkpoint else 0  # the iterations done before this process
+        resumed = checkpoint and len(checkpoint["rm_pool"]) == 3
+        self.pool = checkpoint["rm_pool"].to(device) if resumed else torch.zeros(3, 0, device=device)
+        self.start_time = time.time()
+
+    def update(self, iteration, batch, rewards, update_stats, kl_coef, save):
+        losses = {name: torch.stack([stats[name] for stats in update_stats]).mean().item() for name in update_stats[0]}
+        if "returns" in batch:  # a critic was fitted
+            returns, values = (batch[key][batch["mask"].bool()] for key in ("returns", "values"))
+            losses["explained_variance"] = (1 - (returns - values).var() / returns.var()).item()
+        prompts = (batch["tokens"][:, 2] * len(WORDS) + batch["tokens"][:, 4]).float()  # its NOUN and ADJ, one number
+        self.pool = torch.cat([self.pool, torch.stack([batch["scores"], batch["gold"], prompts])], 1)[:, -POOL:]
+        stats = response_stats(batch, self.pool)
+        sps = (iteration - self.done) * self.args.batch_size / (time.time() - self.start_time)
+        scalars = {f"losses/{name}": value for name, value in losses.items()} | stats | {"rlhf/kl_coef": kl_coef}
+        scalars |= {"charts/SPS": sps, "charts/learning_rate": self.args.learning_rate}
+        scalars["charts/episodic_return"] = rewards.sum(1).mean().item()
+        scalars["charts/episodic_length"] = stats["rlhf/response_length"]
+        for name, value in scalars.items():
+            self.writer.add_scalar(name, value, iteration * self.args.batch_size)
+        names = ("score", "gold_score", "kl", "rm_accuracy")
+        text = " | ".join(f"{name} {stats[f'rlhf/{name}']:+.2f}" for name in names)
+        stage = f"stage 3, {'KTO' if self.args.kto else 'DPO' if self.args.dpo else 'PPO'}: iteration"
+        text = f"{text} | beta {kl_coef:.3g} | SPS {sps:.0f}"
+        report(stage, iteration, self.args.total_episodes // self.args.batch_size, self.start_time, text, self.done)
+        if save:  # the responses the RM scores highest, which pi is pulled toward, beside their gold
+            for i in batch["scores"].argsort(descending=True)[:3].tolist():
+                text = " ".join(WORDS[t] for t in batch["tokens"][i].tolist() if t not in (PAD, BOS))
+                print(f"  score {batch['scores'][i]:+.2f} | gold {batch['gold'][i]:+3.0f} | {text}")
+            self.writer.flush()  # the curve on disk reaches at least the checkpoint's step
+        return scalars
+
+
+def response_stats(batch, pool):
+    """What a batch of responses shows: its scores, its KL to pi_SFT (per response, in nats), its forms; and how often
+    the RM ranks as gold does the pairs in `pool`, (RM scores, gold, prompts) of the policy's recent responses."""
+    mask = batch["mask"]
+    stats = {"score": batch["scores"].mean(), "gold_score": batch["gold"].mean()}
+    stats["kl"] = ((batch["logprobs"] - batch["ref_logprobs"]) * mask).sum(1).mean()
+    stats |= {name: batch[name].mean() for name in ("well_formed", "spam", "garbled")}
+    stats["entropy"] = masked_mean(batch["entropy"], mask)
+    stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
+    stats["rm_accuracy"], stats["rm_pairs"] = pairwise_accuracy(*pool)
+    if "rm_members" in batch:  # an ensemble's members, each's mean score, and their disagreement (their std)
+        stats |= {f"rm_member{k}": score.mean() for k, score in enumerate(batch["rm_members"].T)}
+        stats["rm_disagreement"] = batch["rm_members"].std(1).mean()
+    return {f"rlhf/{name}": value.item() for name, value in stats.items()}
+
+
+# A resumed run keeps its checkpoint's hyperparameters; only how it runs (RUNTIME_FIELDS) may change on --resume.
+RUNTIME_FIELDS = "device compile torch_threads save_every resume track wandb_project_name wandb_entity".split()
 FORMAT = "ppo-checkpoint-v1"
 
 
@@ -715,7 +763,8 @@ def save_checkpoint(path, stage, args, **state):
 
 
 def load_checkpoint(path, args, stage="ppo"):
-    """A checkpoint of this script's `stage` on the CPU, and the Args of its run; else a one-line ValueError."""
+    """A checkpoint of this script's `stage` on the CPU, and the Args of its run (a field it lacks takes its default),
+    with RUNTIME_FIELDS from `args` and its folder for run_dir; else a one-line ValueError."""
     if not os.path.isfile(path):
         raise ValueError(f"checkpoint {path!r} does not exist")
     try:
@@ -723,31 +772,37 @@ def load_checkpoint(path, args, stage="ppo"):
     except Exception:
         raise ValueError(f"cannot read checkpoint {path!r}: it is corrupt or not a checkpoint") from None
     if not isinstance(checkpoint, dict) or (checkpoint.get("format"), checkpoint.get("script")) != (FORMAT, SCRIPT):
-        raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT}")
+        raise ValueError(f"{path!r} is not a checkpoint written by {SCRIPT} or a copy of it")
     if checkpoint.get("stage") != stage:
         raise ValueError(f"{path!r} is a checkpoint of the {checkpoint.get('stage')} stage, not of the {stage} stage")
+    unknown = set(checkpoint["args"]) - set(asdict(args))  # a field renamed or removed since the checkpoint
+    if unknown:
+        raise ValueError(f"{path!r} holds hyperparameters that Args no longer has: {', '.join(sorted(unknown))}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
     return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": os.path.dirname(os.path.abspath(path))})
 
 
-# Every number must be finite and positive, except these, which have ranges of their own.
-RANGES = {"seed": (-math.inf, math.inf), "no_eos_score": (-math.inf, math.inf), "gamma": (0, 1), "gae_lambda": (0, 1)}
+# Every number must be finite. These must also be positive, and these lie in ranges of their own; a number that is in
+# neither list (a new flag, say) may take any finite value.
+POSITIVE = "torch_threads d_model n_layer n_head temperature sft_steps sft_batch_size sft_learning_rate".split()
+POSITIVE += "rm_epochs rm_batch_size rm_learning_rate rm_ensemble total_episodes batch_size minibatch_size".split()
+POSITIVE += "update_epochs learning_rate kl_target kl_horizon clip_coef max_grad_norm save_every".split()
 # The shortest response, "the NOUN was ADJ <eos>", is 5 tokens; 100 comparisons hold out 10 to measure the RM with.
-RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "response_length": (5, BLOCK_SIZE - PROMPT_LENGTH)}
-RANGES |= {"rm_pairs": (100, math.inf), "group_size": (2, math.inf)}
-RANGES |= {"kto_desirable_share": (0, 1), "uwo_coef": (0, math.inf)}
+RANGES = {"gamma": (0, 1), "gae_lambda": (0, 1), "kto_desirable_share": (0, 1), "rm_pairs": (100, math.inf)}
+RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "uwo_coef": (0, math.inf), "group_size": (2, math.inf)}
+RANGES |= {"response_length": (5, BLOCK_SIZE - PROMPT_LENGTH)}
 
 
 def check_args(args):
     """Reject bad input before anything heavy loads, with a one-line reason (a ValueError)."""
     flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
     for name, value in asdict(args).items():
-        low, high = RANGES.get(name, (0, math.inf))
+        low, high = RANGES.get(name, (-math.inf, math.inf))
         if type(value) not in (int, float):  # strings, booleans and None have no range
             continue
         if not math.isfinite(value):
             raise ValueError(f"{flag(name)} must be a finite number, got {value}")
-        if name not in RANGES and value <= 0:
+        if name in POSITIVE and value <= 0:
             raise ValueError(f"{flag(name)} must be positive, got {value}")
         if not low <= value <= high:
             raise ValueError(f"{flag(name)} must be in [{low}, {high}], got {value}")
@@ -765,7 +820,7 @@ def check_args(args):
         raise ValueError("--ipo is a loss of --dpo: add --dpo")
     if args.adaptive_kl and args.kl_coef == 0:
         raise ValueError("--adaptive-kl needs a positive --kl-coef to start from: it scales beta, and 0 stays 0")
-    if args.resume is None and args.total_episodes < args.batch_size:
+    if args.total_episodes < args.batch_size:
         raise ValueError(f"--total-episodes {args.total_episodes} is less than one batch of {args.batch_size}")
     if args.device not in ("auto", "cpu") and not (args.device.startswith("cuda") and torch.cuda.is_available()):
         raise ValueError(f"--device {args.device} is not available here; use auto or cpu")
@@ -778,13 +833,17 @@ def check_args(args):
     if args.resume is None and held and any("tfevents" in f or f.endswith(".pt") for f in held):
         path = os.path.join(args.run_dir, "checkpoint.pt")
         raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {path}")
-    for name, stage in (("sft_checkpoint", "sft"), ("reward_model_checkpoint", "reward_model")):
+    stages = [] if args.resume else [("sft_checkpoint", "sft"), ("reward_model_checkpoint", "reward_model")]
+    for name, stage in stages:  # (a resumed run has both networks in its checkpoint)
         trained = load_checkpoint(getattr(args, name), args, stage)[1] if getattr(args, name) else args
         fields = ("d_model", "n_layer", "n_head") + ("rm_ensemble",) * (stage == "reward_model")
         if any(getattr(trained, field) != getattr(args, field) for field in fields):
             raise ValueError(f"{flag(name)} holds a network of another --d-model, --n-layer, --n-head or --rm-ensemble")
-    if args.resume is not None:
-        load_checkpoint(args.resume, args)
+    if args.resume is not None:  # main() read the command line over the checkpoint's hyperparameters
+        saved = load_checkpoint(args.resume, args)[1]
+        typed = [f"{flag(name)} {value}" for name, value in asdict(args).items() if value != getattr(saved, name)]
+        if typed:
+            raise ValueError(f"a resumed run keeps its checkpoint's hyperparameters: {', '.join(typed)} cannot apply")
 
 
 def new_run_dir(args):
@@ -802,11 +861,9 @@ def start_tracking(args):
     TensorBoard scalars. With no login or no network, it logs offline for `wandb sync` to upload."""
     import wandb
 
-    # a resumed run: its own hyperparameters
-    run = load_checkpoint(args.resume, args, "ppo")[1] if args.resume else args
-    run.run_dir = run.run_dir or new_run_dir(args)  # for a new run, run is args: train() writes there too
-    name = os.path.basename(os.path.abspath(run.run_dir))
-    init = dict(project=args.wandb_project_name, entity=args.wandb_entity, name=name, id=name, config=asdict(run))
+    args.run_dir = args.run_dir or new_run_dir(args)  # train() writes there too
+    name = os.path.basename(os.path.abspath(args.run_dir))
+    init = dict(project=args.wandb_project_name, entity=args.wandb_entity, name=name, id=name, config=asdict(args))
     init |= dict(sync_tensorboard=True, save_code=True, resume="allow")
     try:
         wandb.init(**init)
@@ -821,6 +878,8 @@ def main():
 
     args = tyro.cli(Args)
     try:
+        if args.resume is not None:  # read the command line again over the checkpoint's: a typed flag then shows
+            args = tyro.cli(Args, default=load_checkpoint(args.resume, args)[1])
         check_args(args)
     except ValueError as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts

@@ -104,7 +104,7 @@ def test_every_loss_reads_only_the_masked_tokens(recorded):
     for name in ("clipped_surrogate_loss", "value_loss"):
         assert calls[name], name
         for call in calls[name]:
-            mask = call["args"][-1] if len(call["args"]) in (4, 6) else call["kwargs"].get("mask")
+            mask = call["args"][-1] if len(call["args"]) in (4, 5) else call["kwargs"].get("mask")
             assert mask is not None and torch.is_tensor(mask), f"{name} was called without the mask"
             assert (mask == 0).any() and (mask == 1).any()
     for call in calls["clipped_surrogate_loss"]:
@@ -128,14 +128,14 @@ def baseline_by_loop(rewards, group_size, kind):
 
 @pytest.mark.parametrize("kind", ["dr-grpo", "rloo"])
 def test_each_group_baseline_is_what_its_run_feeds_the_loss(kind, tmp_path):
-    """Issue 54, item 7: a run with --advantage dr-grpo or rloo learns from its own advantage, not GRPO's."""
+    """A run with --advantage dr-grpo or rloo learns from its own advantage, not GRPO's."""
     args, calls = record_run(tmp_path, ["rollout", "compute_rewards", "clipped_surrogate_loss"], advantage=kind)
     fed = torch.cat([call["args"][1].flatten() for call in calls["clipped_surrogate_loss"]])
     for rollout, rewards in zip(calls["rollout"], calls["compute_rewards"], strict=True):
         batch, mask = rollout["out"], rewards["args"][3]
         expected = baseline_by_loop(rewards["out"], args.group_size, kind)[:, None] * mask
         torch.testing.assert_close(batch["advantages"], expected)  # what the update's minibatches are cut from
-        grpo = rlhf.group_advantages(rewards["out"], mask, args.group_size, "grpo")
+        grpo = rlhf.grpo_advantages(rewards["out"].sum(1).view(-1, args.group_size)).view(-1, 1) * mask
         assert not torch.allclose(batch["advantages"], grpo), "the check would not see GRPO's advantage"
     # and the loss got those advantages: every value it saw is one of the batches' (the minibatches are their rows)
     batches = torch.cat([rollout["out"]["advantages"].flatten() for rollout in calls["rollout"]])
@@ -143,7 +143,7 @@ def test_each_group_baseline_is_what_its_run_feeds_the_loss(kind, tmp_path):
 
 
 def test_the_adaptive_kl_run_feeds_its_rewards_the_controllers_beta(tmp_path):
-    """Issue 54, item 7: with --adaptive-kl, each iteration's rewards use the beta that Ziegler et al.'s controller
+    """With --adaptive-kl, each iteration's rewards use the beta that Ziegler et al.'s controller
     made from the previous iteration's KL to pi_SFT, starting from --kl-coef."""
     args, calls = record_run(tmp_path, ["compute_rewards"], adaptive_kl=True, kl_coef=0.05, kl_target=0.5)
     betas = [call["args"][4] for call in calls["compute_rewards"]]
@@ -157,7 +157,7 @@ def test_the_adaptive_kl_run_feeds_its_rewards_the_controllers_beta(tmp_path):
 
 
 def test_an_ipo_run_trains_on_ipos_loss_and_not_dpos(tmp_path):
-    """Issue 54: with --dpo --ipo, stage 3's minibatches reach IPO's loss; DPO's log-sigmoid (the reward model's
+    """With --dpo --ipo, stage 3's minibatches reach IPO's loss; DPO's log-sigmoid (the reward model's
     Bradley-Terry loss) is then called by stage 2 alone. Stages 1 and 2 come from one checkpoint, for both runs."""
     _, dpo = record_run(tmp_path, ["preference_loss", "dpo_update"], dpo=True, kl_coef=0.1)
     stages = {"sft_checkpoint": str(tmp_path / "run" / "sft.pt")}
