@@ -74,8 +74,8 @@ INITIAL_Z = 0.8  # the state's height is the torso's above this
 FLAG_HALF = np.array([105 * 0.25 * 0.5, 50 * 0.25 * 0.5])  # x, y
 FLAG_TIMEOUT = 200
 CAMERA_BACK, CAMERA_SIDE, CAMERA_UP, CAMERA_LOOK = 3.5, 1.5, 2.0, 3.0  # m: the film's camera from the body, its aim
-# MuJoCo's warnings of an unstable simulation (their indices), after each of which it resets the state to the model's.
-UNSTABLE = [int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{what}")) for what in ("QPOS", "QVEL", "QACC")]
+# MuJoCo's warnings of an unstable simulation (bad qpos, qvel, qacc), after each of which it resets the state.
+UNSTABLE = slice(int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQACC) + 1)
 BODIES = "torso lwaist pelvis right_thigh right_shin right_foot left_thigh left_shin left_foot".split()
 BODIES += "right_upper_arm right_lower_arm left_upper_arm left_lower_arm".split()
 
@@ -279,12 +279,12 @@ class Forward:
         a = np.asarray(actions, dtype=np.float64)
         if a.shape != (len(self.datas), len(MOTORS)):  # no silent broadcast to 17 motors or to N bodies
             raise ValueError(f"Action dimension mismatch. Expected {(len(self.datas), len(MOTORS))}, found {a.shape}")
-        diverged = np.zeros(len(self.datas), bool)
+        ctrl, diverged = np.clip(a, -1.0, 1.0), np.zeros(len(self.datas), bool)  # torque: 0.41 x power x the ctrl
         for i, data in enumerate(self.datas):
-            data.ctrl[:] = np.clip(a[i], -1.0, 1.0)  # torque = 0.41 x power x the clipped action (the motors' gear)
-            resets = data.warning.number[UNSTABLE].sum()
+            data.ctrl[:] = ctrl[i]
+            resets = data.warning.number[UNSTABLE].tolist()
             mujoco.mj_step(self.model, data, nstep=FRAME_SKIP)
-            diverged[i] = data.warning.number[UNSTABLE].sum() > resets
+            diverged[i] = data.warning.number[UNSTABLE].tolist() != resets  # a count went up
             mujoco.mj_kinematics(self.model, data)  # the bodies' positions after the last physics step
         rows = np.arange(len(self.datas))
         self.flag_moved[:] = False
