@@ -243,3 +243,28 @@ def test_the_update_ends_within_the_first_330_lines(script):
     train = next(n for n in ast.parse((ROOT / script).read_text()).body if getattr(n, "name", "") == "train")
     loops = [n for n in ast.walk(train) if isinstance(n, ast.For) and ast.unparse(n.target) == "mb_inds"]
     assert len(loops) == 1 and loops[0].end_lineno <= 330, [n.end_lineno for n in loops]
+
+
+def test_every_file_in_benchmarks_stays_under_600_lines_and_the_report_modules_import_in_no_circle():
+    """The benchmarks' code is read as much as it is run: no file of it passes 600 lines (the rlhf-long report is split
+    by what it does: what it measures, its claims, its figure, its account of the rule change). And no report module
+    imports, directly or through others, one that imports it back."""
+    import ast
+
+    folder = ROOT / "benchmarks"
+    files = [p for p in folder.rglob("*.py") if not {"runs", "results"} & set(p.relative_to(folder).parts)]
+    long = {str(p.relative_to(ROOT)): n for p in files if (n := len(p.read_text().splitlines())) >= 600}
+    assert not long, long
+    modules = {p.stem: p for p in (folder / "reports").glob("*.py")}
+    imports = {}
+    for name, path in modules.items():
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("reports"):
+                found |= {node.module.split(".")[1]} if "." in node.module else {a.name for a in node.names}
+        imports[name] = found & set(modules)
+
+    def reaches(start, goal, seen=()):
+        return any(m == goal or (m not in seen and reaches(m, goal, (*seen, m))) for m in imports[start])
+
+    assert not [name for name in modules if reaches(name, name)]

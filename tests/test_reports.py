@@ -424,25 +424,28 @@ def test_readme_results_block_is_generated_from_the_committed_csvs(path, full):
 
 
 def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_path):
-    """rlhf_block counts a seed as over-optimized when its gold score rose to its peak and fell from it, each by more
-    than twice the run's own standard error, while the KL grew past its value there and the RM score ended at least as
-    high (Gao et al. 2022), and no other: not a fall within the noise, nor one from the first tenth; gives the
+    """rlhf_block counts a seed as over-optimized when its gold score rose to its peak and fell from it, each past the
+    noise between tenths and by at least rlhf_series.MIN_FALL, while neither the KL nor the RM score fell past their
+    noise (Gao et al. 2022), and no other: not a fall within the noise between tenths, nor one from the first tenth,
+    nor one with the score or the KL falling too; gives the
     controller's final KL beside its target, and the default runs' wall time; names each fall's hack by the larger of
     the spam and garbled shares at the end; and gives best-of-N's last point."""
     folder = tmp_path / "rlhf"
     rise = [i / 99 for i in range(100)]  # 0 to 1 over 100 iterations
     fall = [1 - r for r in rise]
     falls_late = [min(r, 1.2 - r) for r in rise]  # peaks at 0.6 and ends at 0.2
-    noisy = [g + (-1) ** i for i, g in enumerate(falls_late)]  # falls_late, with each iteration 1 above or below
+    gold_falls = [10 * g for g in falls_late]  # peaks at 6 and ends at 2: a fall of gold points
+    # gold_falls with each tenth 3 above or below by turns: noise between tenths several times the fall
+    noisy = [g + 3 * (-1) ** (i // 10) for i, g in enumerate(gold_falls)]
     shapes = {  # (RM score, gold, KL) of each run
-        ("beta0", 1): (rise, falls_late, rise),  # over-optimized
+        ("beta0", 1): (rise, gold_falls, rise),  # over-optimized
         ("beta0", 2): (rise, rise, rise),  # gold kept rising
-        ("beta0", 3): (falls_late, falls_late, rise),  # gold fell with the score
-        ("beta0", 4): (rise, falls_late, fall),  # gold fell as the KL fell: the controller pulling back, not this
-        ("beta0", 5): (rise, noisy, rise),  # gold fell, but by less than the run's own noise
-        ("beta0", 7): (rise, fall, rise),  # gold fell from the first tenth: it never rose
-        ("beta0", 6): (rise, falls_late, rise),  # over-optimized, onto garbled text
-        ("dpo0.1", 1): (falls_late, falls_late, rise),  # as beta0's seed 3; but DPO never sees the RM: over-optimized
+        ("beta0", 3): (falls_late, gold_falls, rise),  # gold fell with the score
+        ("beta0", 4): (rise, gold_falls, fall),  # gold fell as the KL fell: the controller pulling back, not this
+        ("beta0", 5): (rise, noisy, rise),  # gold fell, but by less than the noise between its tenths
+        ("beta0", 7): (rise, [10 * f for f in fall], rise),  # gold fell from the first tenth: it never rose
+        ("beta0", 6): (rise, gold_falls, rise),  # over-optimized, onto garbled text
+        ("dpo0.1", 1): (falls_late, gold_falls, rise),  # as beta0's seed 3; but DPO never sees the RM: over-optimized
         ("adaptive", 1): (rise, rise, [2.1] * 100),
         ("adaptive", 2): (rise, rise, [2.2] * 100),
         ("beta0.05", 1): (rise, rise, rise),
@@ -460,13 +463,13 @@ def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_pat
     (folder / "best_of_n" / "seed1.csv").write_text("\n".join(best) + "\n")
     block = rlhf.rlhf_block(tmp_path)
     # the last tenth: the mean of rise over iterations 90 to 99, 0.95, and half of it
-    assert "beta0 2 of 7 (seed 1: gold 0.6 to 0.2 as KL grew 0.6 to 1.0; spam 0.95; seed 6: gold" in block
-    assert "as KL grew 0.6 to 1.0; garbled 0.48)" in block and rlhf.BLIND_SPOT in block
+    assert "beta0 2 of 7 (seed 1: gold " in block and "; spam 0.95; seed 6: gold " in block
+    assert "; garbled 0.48)" in block and rlhf.BLIND_SPOT in block
     assert (
         "reached gold 3.25 at N = 4 (KL at most 0.64 nats; 1.50 at N = 1), with the reward models of seeds 1." in block
     )
     assert "adaptive 0 of 2" in block and "beta0.05 0 of 1" in block
-    assert "dpo0.1 1 of 1 (seed 1: gold 0.6 to 0.2 as KL grew 0.6 to 1.0; spam 0.95)" in block
+    assert "dpo0.1 1 of 1 (seed 1: gold " in block and "; spam 0.95). Under the previous rule" in block
     assert "held the KL over the last tenth of training at 2.15 ± 0.07 nats, for a target of 2" in block
     assert "took 1.0–1.0 min for all three stages, with torch's threads on test machine (1 run;" in block
     assert block.startswith(rlhf.RLHF_START) and block.endswith(rlhf.RLHF_END)
@@ -651,6 +654,77 @@ def fake_best_of_n(results, pairs, alpha, beta, g0):
         (where / f"seed{seed}.csv").write_text("\n".join(lines) + "\n")
 
 
+def committed_gold_noise():
+    """The gold's noise in the committed rlhf-long runs, over the report's windows of 20 iterations: each run's noise
+    between windows (rlhf_series.between_window_noise of its window means) and the std of its iterations within a
+    window (the median over its windows), by (variant, seed)."""
+    from results import read_rlhf_series
+
+    between, within = {}, {}
+    for key, run in read_rlhf_series(RESULTS / "rlhf-long").items():
+        means, errors = rlhf_series.tenths(run, "gold_score", spread=True, width=20)
+        between[key] = rlhf_series.between_window_noise(means)
+        within[key] = float(np.median(errors) * np.sqrt(20))
+    return between, within
+
+
+def synthetic_runs(gold, between, within, count, seed):
+    """`count` runs of 1,600 iterations, rlhf-long's 80 windows of 20: gold is the curve `gold` (one value an
+    iteration) plus an offset per window and noise per iteration, sized so that the window means scatter `between`
+    around the curve and the iterations `within` around their window's mean. The KL and the RM score rise steadily
+    (with noise), so that only gold decides a verdict."""
+    rng = np.random.default_rng(seed)
+    n, width = 1600, 20
+    offset = math.sqrt(max(between**2 - within**2 / width, 0.0))
+    runs = {}
+    for i in range(count):
+        columns = np.full((n, 1 + len(RLHF_STATS)), 0.0)
+        columns[:, 0] = np.arange(1, n + 1) * 64
+        noisy = gold + np.repeat(rng.normal(0, offset, n // width), width) + rng.normal(0, within, n)
+        columns[:, 1 + RLHF_STATS.index("gold_score")] = noisy
+        columns[:, 1 + RLHF_STATS.index("kl")] = np.linspace(2.0, 12.0, n) + rng.normal(0, 0.3, n)
+        columns[:, 1 + RLHF_STATS.index("score")] = np.linspace(1.0, 2.0, n) + rng.normal(0, 0.05, n)
+        runs["beta0", i] = columns
+    return runs
+
+
+@pytest.mark.parametrize("level", ["median", "largest"])
+def test_the_fall_rule_calls_fewer_than_5_percent_of_flat_noisy_curves_a_fall(level):
+    """1,000 flat gold curves with the committed rlhf-long runs' noise (the median or the largest noise between
+    windows over the runs, the median within): the rule (rlhf_series.falls) calls fewer than 5% of them
+    over-optimized, and the fall alone, without the rise, passes in fewer than 5% too. The previous rule, whose noise
+    is the spread within windows and so misses what moves a whole window, calls most of them a fall."""
+    between, within = committed_gold_noise()
+    noise = {"median": float(np.median(list(between.values()))), "largest": max(between.values())}[level]
+    runs = synthetic_runs(np.full(1600, 6.0), noise, float(np.median(list(within.values()))), 1000, seed=0)
+    called = len(rlhf_series.falls(runs, width=20)) / len(runs)
+    fell = np.mean([rlhf_series.verdict_of(rlhf_series.judge(run, 20))[1]["fell"] for run in runs.values()])
+    previous = len(rlhf_series.previous_falls(runs, width=20)) / len(runs)
+    assert called < 0.05 and fell < 0.05 and previous > 0.5, (noise, called, fell, previous)
+
+
+def test_the_fall_rule_still_calls_a_fall_of_the_size_seen_at_beta_0():
+    """The committed beta-0 runs (4,096 pairs) fall from their peak to their end by some amount each, read as the
+    rule reads them; the median of the three is the size of fall seen at beta 0. Drawn 200 times on a curve that rises
+    to a plateau and then falls by that much, with that run's own noise between and within windows, the rule calls at
+    least 95% of them over-optimized."""
+    from results import read_rlhf_series
+
+    between, within = committed_gold_noise()
+    series = read_rlhf_series(RESULTS / "rlhf-long")
+    drops = {}
+    for key in [k for k in series if k[0] == "beta0"]:
+        _, peak, last = rlhf_series.judge(series[key], 20)["values"]["gold_score"]
+        drops[key] = peak - last
+    key = sorted(drops, key=drops.get)[len(drops) // 2]  # the seed of the median fall
+    drop = drops[key]
+    t = np.arange(1600) / 1600
+    gold = 2.0 + 6.0 * np.minimum(t / 0.4, 1.0) - drop * np.clip((t - 0.6) / 0.2, 0.0, 1.0)  # rise, plateau, fall
+    runs = synthetic_runs(gold, between[key], within[key], 200, seed=1)
+    called = len(rlhf_series.falls(runs, width=20)) / len(runs)
+    assert drop > 0 and called >= 0.95, (key, drop, between[key], called)
+
+
 def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from_them(tmp_path):
     """Issue 54: on runs drawn from Gao et al.'s RL form with known alpha and beta per reward model size, and best-of-N
     points from its own form, the rlhf-long report fits both back per size, counts the beta-0 runs that pass their
@@ -664,15 +738,18 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     bon = {1024: (2.0, 0.5), 4096: (3.0, 0.5), 16384: (3.5, 0.5)}
     noise = np.random.default_rng(0)
     for variant in [v for v in SUITES["rlhf-long"].variants if over.ensemble_of(v) == 1]:  # ensembles: the next test
-        pairs, d_end = over.rm_pairs(variant), 4.5 if over.beta_of(variant) == 0 else 2.0
+        # the beta-0 runs go on to d = 6; the penalized ones stop at d = 2, on the same grid of d (so that a bin of d
+        # holds the same d in both, and only the noise tells them apart)
+        d = np.linspace(0.05, 6.0, 400)
+        d = d if over.beta_of(variant) == 0 else d[d <= 2.0]
+        pairs = over.rm_pairs(variant)
         for seed in (1, 2, 3):
             fake_run(folder, "reviews", variant, seed, 1.0, steps=102_400)
-            d = np.linspace(0.05, d_end, 100)
             gold = g0 + over.curve("rl", *rl[pairs], d) + noise.normal(0, 0.05, d.size)
             rows = []
-            for i in range(100):
-                stats = {"score": i / 99, "gold_score": gold[i], "kl": d[i] ** 2, "spam": 0.0, "garbled": 0.0}
-                rows.append([(i + 1) * 1024] + [stats.get(name, 0.5) for name in RLHF_STATS])
+            for i in range(d.size):
+                stats = {"score": i / 399, "gold_score": gold[i], "kl": d[i] ** 2, "spam": 0.0, "garbled": 0.0}
+                rows.append([(i + 1) * 256] + [stats.get(name, 0.5) for name in RLHF_STATS])
             write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", RLHF_STATS, rows)
     for pairs, (alpha, beta) in bon.items():
         fake_best_of_n(tmp_path, pairs, alpha, beta, g0)
@@ -685,7 +762,8 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     for pairs in rl:
         assert fitted(pairs, "rl") == pytest.approx(rl[pairs], abs=0.05)
         assert fitted(pairs, "bon") == pytest.approx(bon[pairs], abs=0.01)
-    # the beta-0 runs of 1,024 and 4,096 pairs pass their peak (d* 1.65, 2.72 < 4.5); those of 16,384 barely reach it
+    # the beta-0 runs of 1,024 and 4,096 pairs pass their peak (d* 1.65, 2.72) and fall from it by 3.4 and 1.5 by d = 6;
+    # those of 16,384 pass theirs (4.2) but fall 0.3, under the minimum fall
     counts = {row.split("|")[1].strip(): row.split("|")[-2].strip() for row in text.splitlines() if " of 3 |" in row}
     assert counts == {"beta0": "3 of 3", "beta0.05": "0 of 3", "rm1024-beta0": "3 of 3", "rm16384-beta0": "0 of 3"}
     assert "The 1,024-pair RM's runs peak lower than the 16,384-pair RM's" in text and ") and earlier (their" in text
@@ -695,7 +773,8 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     assert (folder / "curves" / "panels.png").exists() and (folder / "curves" / "seeds.png").exists()
     summary = "\n".join(over.summary_lines(folder, tmp_path))  # the README's, beside the rlhf suite's block
     assert "12 runs of 102,400 responses, seeds 1, 2, 3, β = 0 with reward models from 1,024, 4,096, 16,384" in summary
-    assert all(line in summary for line in text.splitlines() if line.startswith("- **("))
+    current = text.split("## What the change of rule moved")[0]  # after it, the claims under the previous rule
+    assert all(line in summary for line in current.splitlines() if line.startswith("- **("))
 
 
 def test_the_overoptimization_report_answers_whether_an_ensemble_peaks_later_and_higher_and_herds(tmp_path):
@@ -706,7 +785,7 @@ def test_the_overoptimization_report_answers_whether_an_ensemble_peaks_later_and
     from reports import overoptimization as over
 
     folder = tmp_path / "rlhf-long"
-    arms = {"beta0": (2.0, 1.0, 4.5), "ens4-mean": (2.4, 1.0, 6.0)}  # alpha, beta, the last d
+    arms = {"beta0": (2.0, 1.0, 4.5), "ens4-mean": (2.4, 1.0, 8.0)}  # alpha, beta, the last d: past the minimum fall
     for variant, (alpha, beta, d_end) in arms.items():
         for seed in (1, 2, 3):
             fake_run(folder, "reviews", variant, seed, 1.0, steps=102_400)
@@ -728,22 +807,22 @@ def test_the_overoptimization_report_answers_whether_an_ensemble_peaks_later_and
                 write_series(folder / "ensemble" / f"reviews__{variant}__seed{seed}.csv", columns, rows)
     text = report.report(folder, results=tmp_path)
 
-    def peak(alpha, beta, d_end):  # the window of 20 iterations of highest mean gold: its gain over the first, its d
+    def peak(alpha, beta, d_end):  # the 3 windows of 20 iterations of highest mean gold: gain over the first, d
         d = np.linspace(0.05, d_end, 200)
         gold = (1.0 + over.curve("rl", alpha, beta, d)).reshape(10, 20).mean(1)
-        return gold.max() - (1.0 + over.curve("rl", alpha, beta, d[0])), np.sqrt((d**2).reshape(10, 20).mean(1))[
-            gold.argmax()
-        ]
+        kl = (d**2).reshape(10, 20).mean(1)
+        i = int(np.argmax([gold[j : j + 3].mean() for j in range(8)]))
+        return gold[i : i + 3].mean() - (1.0 + over.curve("rl", alpha, beta, d[0])), np.sqrt(kl[i : i + 3].mean())
 
     (single_gain, single_d), (gain, d_peak) = peak(*arms["beta0"]), peak(*arms["ens4-mean"])
-    (d,) = [line for line in text.splitlines() if line.startswith("- **(d)")]
+    d = next(line for line in text.splitlines() if line.startswith("- **(d)"))  # the current rule's, then the previous
     assert f"`ens4-mean` peaks at gold gain {gain:.2f} ± 0.00 at d {d_peak:.2f} ± 0.00" in d
     assert f"its peak gain is above it ({gain - single_gain:+.2f} ± 0.00, mean ± standard error over 3 seeds)" in d
     assert f"its peak's d above its ({d_peak - single_d:+.2f} ± 0.00" in d and gain > single_gain
-    (e,) = [line for line in text.splitlines() if line.startswith("- **(e)")]
+    e = next(line for line in text.splitlines() if line.startswith("- **(e)"))
     assert "Of 3 ensemble runs, 3 fell (the rule above); in 2 of them every member rated the fallen text" in e
     assert "and in 3 the disagreement at the gold peak was more than twice that of the first window" in e
-    assert "ens4-mean seed 3: gold " in e and "; 3 of 4 members rated the last window" in e
+    assert "ens4-mean seed 3: gold " in e and "; 3 of 4 members rated the end at least as high" in e
     assert "| ens4-mean | 4,096 × 4 |" in text
 
 

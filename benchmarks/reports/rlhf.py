@@ -8,7 +8,18 @@ from pathlib import Path
 
 from common import load_script
 from reports.base import fmt, ordered_variants, provenance, where_run
-from reports.rlhf_series import cell, direct_variants, falls, plot_rlhf_seeds, tenths, without_old_accuracy
+from reports.rlhf_series import (
+    MIN_FALL,
+    SMOOTH,
+    Z,
+    cell,
+    direct_variants,
+    falls,
+    plot_rlhf_seeds,
+    previous_falls,
+    tenths,
+    without_old_accuracy,
+)
 from reports.stats import mean_std
 from results import BEST_OF_N, RESULTS, RLHF_STATS, load_runs, read_best_of_n, read_rlhf_series
 from suites import SUITES
@@ -207,11 +218,22 @@ def rlhf_block(results=RESULTS):
         texts = [f"seed {seed}: {text}" for (v, seed), text in fell.items() if v == variant]
         detail = f" ({'; '.join(texts)})" if texts else ""
         overoptimized.append(f"{variant} {len(texts)} of {len(last[variant]['score'])}{detail}")
+    before = previous_falls(series, direct_variants())
+    moved = [
+        f"{v} seed {seed} {'fell' if (v, seed) in before else 'did not'}" for v, seed in sorted(set(before) ^ set(fell))
+    ]
     lines.append(
-        "- **Over-optimization** (Gao et al. 2022). Seeds whose gold score, per tenth of training, rose to its peak and"
-        " fell from it, each by more than twice the run's own standard error, while the KL to π_SFT grew past its"
-        " value there and the RM score ended at least as high (for DPO and KTO, which never see the RM, all but the"
-        " last), with the hack that the last tenth shows most: " + ", ".join(overoptimized) + f". {BLIND_SPOT}"
+        "- **Over-optimization** (Gao et al. 2022). Seeds whose gold score, per tenth of training, rose from the first"
+        f" tenth to its peak (the best mean of {SMOOTH} tenths in a row) and fell from there to its last {SMOOTH}"
+        f" tenths, each by more than {Z:g} standard errors of the noise between tenths and by at least {MIN_FALL:g}"
+        f" gold point, while neither the KL to π_SFT nor the RM score fell past {Z:g} standard errors of theirs (the"
+        " RM score not asked of DPO and KTO, which never see the RM), with the hack that the last tenth shows most: "
+        + ", ".join(overoptimized)
+        + ". Under the previous rule (the single best tenth as the peak, changes against twice the spread within"
+        " tenths, the KL and score to the last digit), "
+        + (", ".join(moved) if moved else "no verdict differed")
+        + f": a fall smaller than {MIN_FALL:g} gold point, or than the noise between tenths, no longer counts."
+        f" {BLIND_SPOT}"
     )
     best = read_best_of_n(folder)
     if best:

@@ -65,11 +65,14 @@ def window_means(column, width, spread=False):
     import numpy as np
 
     first = len(column) % width
+    windows = np.asarray(column[first:], dtype=float).reshape(-1, width)  # one row a window
     with warnings.catch_warnings():  # an iteration with no pair of different gold has no RM accuracy: nan
         warnings.simplefilter("ignore", RuntimeWarning)
-        means = [np.nanmean(column[i : i + width]) for i in range(first, len(column), width)]
-        errors = [np.nanstd(column[i : i + width], ddof=1) / np.sqrt(width) for i in range(first, len(column), width)]
-    return (means, errors) if spread else means
+        means = np.nanmean(windows, axis=1).tolist()
+        if not spread:
+            return means
+        errors = (np.nanstd(windows, axis=1, ddof=1) / np.sqrt(width)).tolist()
+    return means, errors
 
 
 def direct_variants():
@@ -78,29 +81,141 @@ def direct_variants():
     return {variant for variant, (_, flags) in SUITES["rlhf"].variants.items() if {"--dpo", "--kto"} & set(flags)}
 
 
+# Over-optimization is judged so that no single noisy window decides it. A run's gold, KL and RM score are read as
+# window means; the peak is found on their moving average over SMOOTH windows; every change is judged against the
+# noise between windows (below), times Z, and a change in gold must also pass MIN_FALL gold points.
+SMOOTH = 3  # windows a moving average spans: the highest of 80 single windows of pure noise sits about 2.5 of their
+# standard errors above the curve's level, and a mean of 3 has a third of the variance; 3 windows of 20 iterations
+# (3,840 responses of an rlhf-long run's 102,400) still resolve a peak that lasts that long
+Z = 3.5  # standard errors of a difference that a change must pass. Fixed on pure noise, not on the runs: on flat
+# curves of 80 independent windows the smoothed peak minus the smoothed end passes 3 standard errors in about 5% of
+# curves and 3.5 in under 2%, so that the fall alone, not only a rise and a fall together, is under 5%
+# MIN_FALL: gold points a rise and a fall must pass, however quiet the run: five times the noise between the windows
+# of a plateau (about 0.1). Not 1: the one beta-0 run that falls on well-formed text falls 1.02 points, and a minimum
+# at its size would settle its verdict by hundredths, the fragility this rule is here to remove; the rlhf-long report
+# says which verdicts a minimum of 1 would change
+MIN_FALL = 0.5
+
+
+def between_window_noise(means):
+    """The standard deviation of a window mean around its curve, measured between windows: each window against the
+    mean of its two neighbours, which takes out a straight trend; for independent noise of std s that residual has
+    variance 1.5 s^2. Not the spread within windows, which misses whatever moves a whole window: a plateau's windows
+    scatter several times more than their own standard errors say. nan with fewer than 3 windows."""
+    import numpy as np
+
+    m = np.asarray(means, dtype=float)
+    if len(m) < 3:
+        return float("nan")
+    residual = m[1:-1] - (m[:-2] + m[2:]) / 2
+    return float(np.sqrt(np.mean(residual**2) / 1.5))
+
+
+def smoothed(means, width=SMOOTH):
+    """The moving average of window means over `width` windows, one per full span (the first spans windows 0 to
+    width - 1); the whole curve's mean where there are fewer windows."""
+    import numpy as np
+
+    m = np.asarray(means, dtype=float)
+    return np.convolve(m, np.ones(width) / width, mode="valid") if len(m) >= width else np.array([m.mean()])
+
+
+def judge(run, width=None, min_fall=MIN_FALL):
+    """The new rule's reading of one run, on window means of `width` iterations (a tenth of the run without it):
+    {name: (first window, smoothed peak, smoothed end)} for gold, KL and RM score at the smoothed gold peak; the
+    peak's span of windows; and each quantity's tolerance, Z between-window standard errors of the difference it is
+    judged by (gold's at least min_fall). The start is the first window alone: the policy moves fastest there, and a
+    moving average would mix the start into the rise."""
+    import numpy as np
+
+    out = {"tolerance": {}, "values": {}}
+    for name in ("gold_score", "kl", "score"):
+        means = tenths(run, name, width=width)
+        curve = smoothed(means)
+        if name == "gold_score":
+            peak = int(np.argmax(curve))
+            out["span"] = (peak, peak + min(SMOOTH, len(means)), len(means))  # first, last (exclusive), of how many
+        noise = between_window_noise(means)
+        k = min(SMOOTH, len(means))
+        out["values"][name] = (float(means[0]), float(curve[peak]), float(curve[-1]))
+        fall, rise = Z * noise * (2 / k) ** 0.5, Z * noise * (1 + 1 / k) ** 0.5
+        if name == "gold_score":
+            fall, rise = max(min_fall, fall), max(min_fall, rise)
+        out["tolerance"][name] = (rise, fall)
+    return out
+
+
+def verdict_of(reading, direct=False):
+    """Whether a reading (judge()) is over-optimization, and the conditions: gold rose from the first window to the
+    peak and fell from the peak to the end, each by more than its tolerance; the KL did not end lower than at the peak
+    by more than its tolerance; nor the RM score, but for a method that never sees the RM (`direct`)."""
+    values, tolerance = reading["values"], reading["tolerance"]
+    first, peak, last = values["gold_score"]
+    conditions = {
+        "rose": peak - first > tolerance["gold_score"][0],
+        "fell": peak - last > tolerance["gold_score"][1],
+        "kl held": values["kl"][2] > values["kl"][1] - tolerance["kl"][1],
+        "score held": direct or values["score"][2] >= values["score"][1] - tolerance["score"][1],
+    }
+    return all(conditions.values()), conditions
+
+
+def hack(run, direct, width=None):
+    """The hack by the last window's shares of spam and garbled text."""
+    spam, garbled = tenths(run, "spam", width=width)[-1], tenths(run, "garbled", width=width)[-1]
+    if max(spam, garbled) < 0.1:
+        overrates = "its implicit reward" if direct else "the RM"
+        return f"well-formed text {overrates} overrates (spam {spam:.2f}, garbled {garbled:.2f})"
+    return f"spam {spam:.2f}" if spam >= garbled else f"garbled {garbled:.2f}"
+
+
 def falls(series, direct=(), width=None):
-    """{(variant, seed): text} for each run over-optimized (Gao et al. 2022). Its gold score, per tenth of training (or
-    per `width` iterations), rose from the first to its peak and fell from the peak to the last, each by more than
-    twice the standard error of the difference (the run's own noise); its KL to pi_SFT ended above its value at the
-    peak; and its RM score ended at least as high as there, but for a variant in `direct` (DPO, KTO), which never
-    sees the RM: Rafailov et al. (2024) find that direct methods over-optimize too. The text names the hack by the
-    last window's shares of spam and garbled text."""
+    """{(variant, seed): text} for each run over-optimized (Gao et al. 2022), by verdict_of() on windows of `width`
+    iterations (tenths without it): gold rose to its peak and fell from it, beyond the noise between windows and by
+    at least MIN_FALL gold points, while the KL to pi_SFT and the RM score did not fall beyond their noise; the RM
+    score is not asked of a variant in `direct` (DPO, KTO), which never sees the RM: Rafailov et al. (2024) find that
+    direct methods over-optimize too. The text names the hack by the last window's shares of spam and garbled text."""
     out = {}
     for key, run in sorted(series.items()):
-        (gold, error) = tenths(run, "gold_score", spread=True, width=width)
-        score, kl = tenths(run, "score", width=width), tenths(run, "kl", width=width)
-        peak = max(range(len(gold)), key=gold.__getitem__)
+        reading = judge(run, width)
+        if verdict_of(reading, key[0] in direct)[0]:
+            gold, kl = reading["values"]["gold_score"], reading["values"]["kl"]
+            out[key] = (
+                f"gold {gold[1]:.1f} to {gold[2]:.1f} as KL went {kl[1]:.1f} to {kl[2]:.1f};"
+                f" {hack(run, key[0] in direct, width)}"
+            )
+    return out
 
-        noise = [2 * (error[peak] ** 2 + e**2) ** 0.5 for e in error]  # of a difference from the peak
-        rose, fell = gold[peak] - gold[0] > noise[0], gold[peak] - gold[-1] > noise[-1]
-        proxy_held = key[0] in direct or score[-1] >= score[peak]
-        if rose and fell and kl[-1] > kl[peak] and proxy_held:
-            spam, garbled = tenths(run, "spam", width=width)[-1], tenths(run, "garbled", width=width)[-1]
-            hack = f"spam {spam:.2f}" if spam >= garbled else f"garbled {garbled:.2f}"
-            if max(spam, garbled) < 0.1:
-                overrates = "its implicit reward" if key[0] in direct else "the RM"
-                hack = f"well-formed text {overrates} overrates (spam {spam:.2f}, garbled {garbled:.2f})"
-            out[key] = f"gold {gold[peak]:.1f} to {gold[-1]:.1f} as KL grew {kl[peak]:.1f} to {kl[-1]:.1f}; {hack}"
+
+def previous_judgement(run, direct=False, width=None):
+    """The rule before this one, kept to show which verdicts it changed: the peak is the single window of highest gold;
+    gold rose from the first window and fell to the last by more than twice the standard error of the difference, from
+    the iterations' spread within the two windows; the KL ended above its value at the peak; the RM score ended at
+    least as high (but for `direct`). (over-optimized, {condition: held}, {name: (first, peak, last)}, {name:
+    tolerance}, the peak window)."""
+    (gold, error) = tenths(run, "gold_score", spread=True, width=width)
+    values = {name: tenths(run, name, width=width) for name in ("kl", "score")}
+    peak = max(range(len(gold)), key=gold.__getitem__)
+    noise = [2 * (error[peak] ** 2 + e**2) ** 0.5 for e in error]  # of a difference from the peak
+    values = {name: (v[0], v[peak], v[-1]) for name, v in [("gold_score", gold), *values.items()]}
+    conditions = {
+        "rose": gold[peak] - gold[0] > noise[0],
+        "fell": gold[peak] - gold[-1] > noise[-1],
+        "kl held": values["kl"][2] > values["kl"][1],
+        "score held": direct or values["score"][2] >= values["score"][1],
+    }
+    tolerance = {"gold_score": (noise[0], noise[-1]), "kl": (0.0, 0.0), "score": (0.0, 0.0)}
+    return all(conditions.values()), conditions, values, tolerance, peak
+
+
+def previous_falls(series, direct=(), width=None):
+    """{(variant, seed): text} for each run the previous rule (previous_judgement) called over-optimized."""
+    out = {}
+    for key, run in sorted(series.items()):
+        fell, _, values, _, _ = previous_judgement(run, key[0] in direct, width)
+        if fell:
+            (_, peak, last), kl = values["gold_score"], values["kl"]
+            out[key] = f"gold {peak:.1f} to {last:.1f} as KL grew {kl[1]:.1f} to {kl[2]:.1f}"
     return out
 
 
