@@ -6,9 +6,13 @@ and DPO's runs.
 
     python benchmarks/best_of_n.py benchmarks/runs/rlhf/reviews__beta0.05__seed1    # stages 1-2 of that run's seed
 
-It reads the run's sft.pt and reward_model.pt (stages 1 and 2 depend only on the seed, so any arm of a seed serves)
-and writes benchmarks/results/rlhf/best_of_n/seed<N>.csv (for a reward model of another --rm-pairs P than the
-default, benchmarks/results/rlhf-long/rm<P>/best_of_n/seed<N>.csv): N, the analytic KL, and the mean RM score, gold
+It reads the run's sft.pt and reward_model.pt (stages 1 and 2 depend only on the seed and the reward model's flags,
+so any arm with the same reward model serves) and writes benchmarks/results/rlhf/best_of_n/seed<N>.csv (for a reward
+model of another --rm-pairs P than the default, benchmarks/results/rlhf-long/rm<P>/best_of_n/seed<N>.csv). An
+ensemble arm's reward_model.pt holds its K members: they are loaded as the run loaded them, and the kept response is
+the one their aggregate (the run's --rm-ensemble-agg, mean, min or uwo) scores highest, written to
+benchmarks/results/rlhf-long/rm<P>-ens<K>-<agg>/best_of_n/seed<N>.csv, beside the single RM's, never over it. The CSV
+holds N, the analytic KL, and the mean RM score, gold
 score and shares of well-formed, spam and garbled text of the kept responses, and how often the RM ranks pairs of them
 (to one prompt, of different gold) as gold does; after '# key: value' lines that say where and how it was made.
 """
@@ -26,7 +30,7 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import load_script  # noqa: E402
-from reports.overoptimization import best_of_n_folder  # noqa: E402
+from reports.overoptimization_measures import SUITE, best_of_n_folder  # noqa: E402
 from results import commit, machine, versions  # noqa: E402
 
 NS = [1, 2, 4, 8, 16, 32, 64]
@@ -52,12 +56,14 @@ def exact_kl(probs, scores, n):
 
 def best_of_n(run_dir, prompts=256, ns=NS, seed=0):
     """Rows (N, KL, score, gold, well_formed, spam, garbled, rm_accuracy) for each N in ns, over the same `prompts`
-    prompts: the best of the first N of max(ns) responses to each, as the run's reward model ranks them."""
+    prompts: the best of the first N of max(ns) responses to each, as the run's reward model ranks them (an
+    ensemble's: by its aggregate)."""
     rlhf = load_script("ppo_rlhf.py")
     checkpoint, args = rlhf.load_checkpoint(str(Path(run_dir) / "sft.pt"), rlhf.Args(), "sft")
     sft = rlhf.new_model(args, "cpu", checkpoint["model"])
-    rm_checkpoint = rlhf.load_checkpoint(str(Path(run_dir) / "reward_model.pt"), args, "reward_model")[0]
-    reward_model = rlhf.new_model(args, "cpu", rm_checkpoint["model"])
+    # the reward model's own Args: an ensemble's K members and their aggregate are there, not in sft.pt's
+    rm_checkpoint, rm_args = rlhf.load_checkpoint(str(Path(run_dir) / "reward_model.pt"), args, "reward_model")
+    reward_model = rlhf.new_model(rm_args, "cpu", rm_checkpoint["model"], rm_args.rm_ensemble)
     torch.manual_seed(seed)
     tokens, mask = rlhf.generate(sft, prompts, args.response_length, args.temperature, max(ns))
     with torch.no_grad():
@@ -74,6 +80,16 @@ def best_of_n(run_dir, prompts=256, ns=NS, seed=0):
     return rows
 
 
+def default_out(results, rm_args):
+    """Where best-of-N of a reward model with these Args goes: the folder of its --rm-pairs for one reward model, and
+    for an ensemble one of its own, named by its pairs, members and aggregate, so that it never overwrites the single
+    reward model's curve that the reports read."""
+    if rm_args.rm_ensemble == 1:
+        return best_of_n_folder(results, rm_args.rm_pairs) / "best_of_n"
+    name = f"rm{rm_args.rm_pairs}-ens{rm_args.rm_ensemble}-{rm_args.rm_ensemble_agg}"
+    return Path(results) / SUITE / name / "best_of_n"
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("run_dir", type=Path, help="a ppo_rlhf.py run directory with sft.pt and reward_model.pt")
@@ -83,10 +99,10 @@ def main():
     rlhf = load_script("ppo_rlhf.py")
     try:
         seed = rlhf.load_checkpoint(str(args.run_dir / "sft.pt"), rlhf.Args(), "sft")[1].seed
-        pairs = rlhf.load_checkpoint(str(args.run_dir / "reward_model.pt"), rlhf.Args(), "reward_model")[1].rm_pairs
+        rm_args = rlhf.load_checkpoint(str(args.run_dir / "reward_model.pt"), rlhf.Args(), "reward_model")[1]
     except ValueError as e:
         sys.exit(f"best_of_n.py: error: {e}")
-    out = args.out or best_of_n_folder(ROOT / "benchmarks" / "results", pairs) / "best_of_n" / f"seed{seed}.csv"
+    out = args.out or default_out(ROOT / "benchmarks" / "results", rm_args) / f"seed{seed}.csv"
     start = time.time()
     rows = best_of_n(args.run_dir, args.prompts, seed=seed)
     header = {"command": " ".join(["python", *sys.argv]), "commit": commit(["ppo_rlhf.py"], " (script modified)")}

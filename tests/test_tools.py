@@ -131,3 +131,45 @@ def test_best_of_ns_closed_form_kl_is_an_upper_bound_measured_by_enumeration():
     assert best_of_n.exact_kl(probs, scores, 4) < best_of_n.analytic_kl(4) - 0.05  # heavy atoms: far below the bound
     fine = [1 / 10_000] * 10_000  # no response with much mass: the bound is nearly reached
     assert best_of_n.exact_kl(fine, list(range(10_000)), 64) == pytest.approx(best_of_n.analytic_kl(64), abs=2e-3)
+
+
+def test_best_of_n_scores_an_ensemble_arm_with_its_aggregate(tmp_path):
+    """An ensemble arm's reward_model.pt holds its K members and the aggregate its run scored with: best_of_n.py loads
+    them as the run did and keeps the response their aggregate scores highest. Members: one network s, and the same
+    with its score 4 higher. Per response, min is s, mean s + 2 and uwo s + 2 - 0.1 var = s + 1.2 (var of {s, s + 4} is
+    8, with ddof 1): each ensemble's rows are those of the one network with its score shifted so (a response without
+    EOS scores the run's fixed --no-eos-score under both); and its CSV goes to a folder of its own, not over the single
+    reward model's."""
+    import best_of_n
+
+    rlhf = load_script("ppo_rlhf.py")
+    args = rlhf.Args(d_model=16, n_layer=1, n_head=2, response_length=16, seed=1)
+    torch.manual_seed(0)
+    sft, single = rlhf.new_model(args, "cpu"), rlhf.new_model(args, "cpu")
+    torch.nn.init.normal_(single.score_head.weight)  # a zero head scores every response 0: no favourite
+
+    def rows_of(name, rm_args, state):
+        (tmp_path / name).mkdir()
+        rlhf.save_checkpoint(str(tmp_path / name / "sft.pt"), "sft", args, model=sft.state_dict())
+        rlhf.save_checkpoint(str(tmp_path / name / "reward_model.pt"), "reward_model", rm_args, model=state)
+        return best_of_n.best_of_n(tmp_path / name, prompts=16, ns=[1, 4, 16])
+
+    plain = rows_of("single", args, single.state_dict())
+    assert plain[0][2] < plain[-1][2], "the single RM must have a favourite for the check to mean anything"
+    for agg, shift in (("min", 0.0), ("mean", 2.0), ("uwo", 1.2)):
+        ensemble_args = rlhf.Args(**{**vars(args), "rm_ensemble": 2, "rm_ensemble_agg": agg})
+        ensemble = rlhf.new_model(ensemble_args, "cpu", members=2)
+        for member in ensemble:
+            member.load_state_dict(single.state_dict())
+        shifted = rlhf.new_model(args, "cpu", single.state_dict())
+        with torch.no_grad():
+            ensemble[1].score_head.bias.add_(4.0)
+            shifted.score_head.bias.add_(shift)
+        mine = rows_of(agg, ensemble_args, ensemble.state_dict())
+        theirs = rows_of(f"single+{shift}", args, shifted.state_dict())
+        for row, expected in zip(mine, theirs, strict=True):
+            assert row == pytest.approx(expected, abs=1e-4, nan_ok=True), agg
+    results = tmp_path / "results"
+    assert best_of_n.default_out(results, args) == results / "rlhf" / "best_of_n"
+    min_args = rlhf.Args(**{**vars(args), "rm_ensemble": 2, "rm_ensemble_agg": "min"})
+    assert best_of_n.default_out(results, min_args) == results / "rlhf-long" / "rm4096-ens2-min" / "best_of_n"
