@@ -36,7 +36,7 @@ from suites import SUITES
 
 PEAKS = {
     CURRENT: f"on moving averages of {SMOOTH} windows of {WINDOW} iterations",
-    PREVIOUS: f"the best single window of {WINDOW} iterations",
+    PREVIOUS: f"in the best single window of {WINDOW} iterations",
 }
 
 
@@ -166,9 +166,9 @@ def ensemble_claims(series, sft_of, ensemble, rule=CURRENT):
             " end"
         )
     if keys:
-        fallen = len(rows)
+        fallen, by = len(rows), "the rule above" if rule == CURRENT else "the previous rule"
         answer = (
-            f"Of {len(keys)} ensemble runs, {fallen} fell (the rule above)"
+            f"Of {len(keys)} ensemble runs, {fallen} fell ({by})"
             + (
                 f"; in {herded} of them every member rated the fallen text at least as high as the peak's (herding),"
                 f" and in {first} the disagreement at the gold peak was more than twice that of the first window: "
