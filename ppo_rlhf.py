@@ -59,7 +59,8 @@ class Args:
     rm_epochs: int = 4  # epochs over the training pairs
     rm_batch_size: int = 64  # pairs per step
     rm_learning_rate: float = 1e-3  # Adam step size
-    rm_ensemble: int = 1  # K reward models, on the same pairs, each in the order of its own seed (Coste et al. 2023)
+    rm_ensemble: int = 1  # K reward models, on the same pairs, each with its own seed's order and head (Coste et al.)
+    rm_same_head: bool = False  # an ablation: the K members all start from the zero head and differ in order only
     rm_ensemble_agg: Literal["mean", "min", "uwo"] = "mean"  # how stage 3 scores with K: uwo is mean - lambda variance
     uwo_coef: float = 0.1  # lambda of uwo, the weight of the members' variance (Coste et al.'s PPO setting)
     # Stage 3: PPO against the reward model
@@ -386,6 +387,8 @@ def train_reward_model(args, sft, run_dir, device, stop):
             torch.manual_seed(args.seed + 1 + 1000 * k)
         order = torch.cat([torch.randperm(n_train, device=device) for _ in range(args.rm_epochs)])
         reward_model = copy.deepcopy(sft)
+        if args.rm_ensemble > 1 and not args.rm_same_head:  # and a score head drawn from that seed, as Coste et al.'s
+            reward_model.score_head.reset_parameters()
 
         def loss_fn(step, order=order, reward_model=reward_model):
             mb_inds = order[(step - 1) * args.rm_batch_size : step * args.rm_batch_size]
@@ -511,7 +514,7 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         elif pairs is None:  # GRPO, Dr. GRPO, RLOO (after PPO's path): a group's baseline for the critic and GAE
             update_stats = group_baseline_update(agent, optimizer, batch, rewards, args, device)
         else:  # DPO, IPO, KTO (after PPO's path): a loss on the reward model's own pairs; the rollout only measures
-            update_stats = preference_update(agent, optimizer, pairs, args, device)
+            update_stats = preference_update(agent, reference, optimizer, pairs, args, device)
 
         # LOGGING (and samples, at a checkpoint), then Ziegler et al.'s controller: beta from this iteration's KL.
         save = stop or iteration % args.save_every == 0 or iteration == num_iterations
@@ -601,25 +604,21 @@ def sequence_logprobs(lm, tokens, mask, temperature):
 
 def dpo_pairs(reference, args, device):
     """DPO's data: the reward model's training pairs, with pi_SFT's log-prob of each response, computed once. KTO also
-    takes "kl", mismatched pairs (each pair's prompt, the previous pair's response) for its reference point, and "kept",
-    the pairs whose chosen response it keeps (--kto-desirable-share)."""
+    takes "kept", the pairs whose chosen response it keeps (--kto-desirable-share)."""
     tokens, mask, chosen, rejected, n_train = preference_pairs(reference, args, device)
     pairs = {"kept": torch.arange(n_train, device=device) < args.kto_desirable_share * n_train}
-    sides = [("chosen", chosen[:n_train]), ("rejected", rejected[:n_train])]
-    sides += [("kl", rejected[:n_train].roll(1))] if args.kto else []
-    for side, rows in sides:
+    for side, rows in (("chosen", chosen[:n_train]), ("rejected", rejected[:n_train])):
         pairs |= {f"{side}_tokens": tokens[rows], f"{side}_mask": mask[rows]}
-        pairs[f"{side}_tokens"][:, :PROMPT_LENGTH] = tokens[chosen[:n_train], :PROMPT_LENGTH]  # the pair's prompt
-        logprobs = sequence_logprobs(reference, pairs[f"{side}_tokens"], mask[rows], args.temperature)
-        pairs[f"{side}_ref"] = logprobs.detach()
+        pairs[f"{side}_ref"] = sequence_logprobs(reference, tokens[rows], mask[rows], args.temperature).detach()
     return pairs
 
 
-def preference_update(agent, optimizer, pairs, args, device):
+def preference_update(agent, reference, optimizer, pairs, args, device):
     """The update of --dpo (--ipo) or --kto: dpo_update on minibatches of --batch-size of the RM's pairs, drawn anew."""
     rows = torch.randint(len(pairs["chosen_ref"]), (args.batch_size,), device=device)
     data = {key: value[rows] for key, value in pairs.items()}
-    return [dpo_update(agent, optimizer, mb, args) for mb in minibatches(data, args, device)]
+    mbs = (kto_mismatched(reference, mb, args) if args.kto else mb for mb in minibatches(data, args, device))
+    return [dpo_update(agent, optimizer, mb, args) for mb in mbs]
 
 
 def dpo_update(agent, optimizer, mb, args):
@@ -640,7 +639,10 @@ def dpo_update(agent, optimizer, mb, args):
         loss = preference_loss(implicit["chosen"], implicit["rejected"])
     gradient_step(agent, optimizer, loss, args)
     accuracy = (implicit["chosen"] > implicit["rejected"]).float().mean()  # how often pi prefers the chosen
-    return {"loss": loss.detach(), "policy_loss": loss.detach(), "implicit_accuracy": accuracy}
+    stats = {"loss": loss.detach(), "policy_loss": loss.detach(), "implicit_accuracy": accuracy}
+    if args.kto:  # KTO's reference point z0, and the mismatched pairs' mean implied reward, which it clamps at 0
+        stats |= {"kto_z0": implicit["kl"].mean().clamp(min=0), "kto_mismatched_reward": implicit["kl"].mean()}
+    return stats
 
 
 def ipo_loss(chosen, rejected, beta):
@@ -652,8 +654,10 @@ def ipo_loss(chosen, rejected, beta):
 def kto_loss(desirable, undesirable, mismatched, weights):
     """KTO's loss (Ethayarajh et al. 2024, eq. (8)) from the implied rewards r = beta log(pi(y|x) / pi_SFT(y|x)) of
     responses judged alone: lambda_D (1 - sigmoid(r - z0)) for a desirable one, lambda_U (1 - sigmoid(z0 - r)) for an
-    undesirable one, averaged over both. z0 is the reference point, beta KL[pi || pi_SFT]: the mismatched pairs' mean
-    implied reward, clamped at 0, as TRL's KTOTrainer estimates it.
+    undesirable one, averaged over both. z0, the reference point, stands for beta KL[pi || pi_SFT]; TRL's KTOTrainer
+    estimates it as the mismatched pairs' mean implied reward (kto_mismatched), clamped at 0, and held constant. Those
+    responses are pi_SFT's samples, not pi's: their mean estimates about -beta KL[pi_SFT || pi] <= 0, so z0 stays near
+    0, and the loss is in effect TRL's apo_zero_unpaired, r against 0.
 
     >>> kto_loss(torch.zeros(1), torch.zeros(2), torch.zeros(1), (1.0, 2.0))  # (1 x 0.5 + 2 x 2 x 0.5) / 3
     tensor(0.8333)
@@ -661,6 +665,16 @@ def kto_loss(desirable, undesirable, mismatched, weights):
     z0 = mismatched.mean().clamp(min=0)
     losses = [weights[0] * (1 - torch.sigmoid(desirable - z0)), weights[1] * (1 - torch.sigmoid(z0 - undesirable))]
     return torch.cat(losses).mean()
+
+
+def kto_mismatched(reference, mb, args):
+    """KTO's mismatched pairs for z0 (kto_loss), as TRL's KTOTrainer builds them: the minibatch's own responses (the
+    kept desirable, the undesirable) rotated by one, each after another pair's prompt; with pi_SFT's log-prob."""
+    tokens = torch.cat([mb["chosen_tokens"][mb["kept"]], mb["rejected_tokens"]])
+    mask = torch.cat([mb["chosen_mask"][mb["kept"]], mb["rejected_mask"]]).roll(1, 0)
+    tokens = torch.cat([tokens[:, :PROMPT_LENGTH], tokens[:, PROMPT_LENGTH:].roll(1, 0)], 1)
+    kl_ref = sequence_logprobs(reference, tokens, mask, args.temperature)
+    return mb | {"kl_tokens": tokens, "kl_mask": mask, "kl_ref": kl_ref}
 
 
 class Ensemble(nn.ModuleList):
@@ -818,6 +832,8 @@ def check_args(args):
         raise ValueError(f"--kto-weights must be two positive numbers, got {args.kto_weights}")
     if args.ipo and not args.dpo:
         raise ValueError("--ipo is a loss of --dpo: add --dpo")
+    if args.rm_same_head and args.rm_ensemble == 1:
+        raise ValueError("--rm-same-head is how the members of an ensemble start: add --rm-ensemble K > 1")
     if args.adaptive_kl and args.kl_coef == 0:
         raise ValueError("--adaptive-kl needs a positive --kl-coef to start from: it scales beta, and 0 stays 0")
     if args.total_episodes < args.batch_size:

@@ -187,12 +187,23 @@ SUITES = {
             "beta0.05": ("ppo_rlhf.py", []),
             "rm1024-beta0": ("ppo_rlhf.py", ["--rm-pairs", "1024", "--kl-coef", "0"]),
             "rm16384-beta0": ("ppo_rlhf.py", ["--rm-pairs", "16384", "--kl-coef", "0"]),
-            # Reward-model ensembles (issue 60, Coste et al. 2023): 4 RMs on the default 4,096 pairs, at beta 0. The
-            # mean, and the worst case (min) or the uncertainty-weighted mean (uwo), whichever peaked higher in gold
-            # over windows of 20 iterations in a pilot of seed 4 at half the length (rlhf-long_51200/); seeds 1-3.
+            # Reward-model ensembles (Coste et al. 2023): 4 RMs on the default 4,096 pairs, at beta 0. The mean, and
+            # the worst case (min) or the uncertainty-weighted mean (uwo), whichever peaked higher in gold over windows
+            # of 20 iterations in a pilot of seed 4 at half the length (rlhf-long_51200/); seeds 1-3. Each member
+            # draws its data order and its score head from a seed of its own, as Coste et al.'s do. The -same-head
+            # runs are the ablation: members that differ only in their data order (the pilot's members were these).
+            # Their CSVs' command lines do not show --rm-same-head: they ran before the flag, when it was the only way.
             "ens4-mean": ("ppo_rlhf.py", ["--rm-ensemble", "4", "--kl-coef", "0"]),
             "ens4-min": ("ppo_rlhf.py", ["--rm-ensemble", "4", "--rm-ensemble-agg", "min", "--kl-coef", "0"]),
-            "ens4-uwo": ("ppo_rlhf.py", ["--rm-ensemble", "4", "--rm-ensemble-agg", "uwo", "--kl-coef", "0"]),
+            "ens4-mean-same-head": ("ppo_rlhf.py", ["--rm-ensemble", "4", "--rm-same-head", "--kl-coef", "0"]),
+            "ens4-min-same-head": (
+                "ppo_rlhf.py",
+                ["--rm-ensemble", "4", "--rm-ensemble-agg", "min", "--rm-same-head", "--kl-coef", "0"],
+            ),
+            "ens4-uwo-same-head": (
+                "ppo_rlhf.py",
+                ["--rm-ensemble", "4", "--rm-ensemble-agg", "uwo", "--rm-same-head", "--kl-coef", "0"],
+            ),
         },
         ["reviews"],
         [1, 2, 3],
@@ -203,7 +214,7 @@ SUITES = {
         budget_flag="--total-episodes",
         report="overoptimization",
         # the pilot chose min by the rule above (rlhf-long_51200/report.md has both peaks); uwo ran only there
-        only={"ens4-uwo": (["reviews"], [4])},
+        only={"ens4-uwo-same-head": (["reviews"], [4])},
     ),
     # The paper's Figure 3 (issue 41): the algorithms PPO was compared with, on the mujoco suite's tasks and budget.
     # A2C is Stable-Baselines3's, TRPO sb3-contrib's, each with the RL Zoo's hyperparameters for the task (SB3's

@@ -377,6 +377,7 @@ BAD_INPUTS = [
     (["--kto", "--kto-weights", "1", "nan"], "--kto-weights must be two positive numbers, got (1.0, nan)"),
     (["--kto", "--kto-desirable-share", "1.5"], "--kto-desirable-share must be in [0, 1]"),
     (["--rm-ensemble", "0"], "--rm-ensemble must be positive"),
+    (["--rm-same-head"], "--rm-same-head is how the members of an ensemble start: add --rm-ensemble K > 1"),
     (["--rm-ensemble", "2", "--uwo-coef", "-1"], "--uwo-coef must be in [0, inf]"),
     (["--rm-ensemble-agg", "max"], "invalid choice"),
     (["--ipo"], "--ipo is a loss of --dpo: add --dpo"),
@@ -636,21 +637,102 @@ def test_kto_judges_each_response_alone_against_the_reference_point(kept):
     assert rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)["loss"] < stats["loss"]
 
 
-def test_kto_pairs_take_each_pairs_prompt_and_the_previous_pairs_rejected_response(tiny_run):
-    """dpo_pairs for KTO: "kl" is pair i's prompt with pair i - 1's rejected response, with pi_SFT's log-prob of that,
-    and "kept" the first --kto-desirable-share of the pairs."""
+def test_kto_mismatched_pairs_are_the_minibatchs_own_responses_each_after_another_prompt(tiny_run):
+    """KTO's KL batch, built for each minibatch as TRL's KTOTrainer builds it: the kept chosen responses, then the
+    rejected ones, each after the prompt of the one that follows it in that list, with pi_SFT's log-prob; and dpo_pairs
+    keeps the first --kto-desirable-share of the pairs' chosen responses."""
     _, run_dir = tiny_run
     args = rlhf.Args(**{**vars(rlhf_tiny_args(run_dir.parent)), "kto": True, "kto_desirable_share": 0.25})
     sft = rlhf.new_model(args, "cpu", torch.load(run_dir / "sft.pt", weights_only=True)["model"])
     pairs = rlhf.dpo_pairs(sft, args, "cpu")
-    P = rlhf.PROMPT_LENGTH
-    assert torch.equal(pairs["kl_tokens"][:, :P], pairs["chosen_tokens"][:, :P])
-    assert torch.equal(pairs["kl_tokens"][:, P:], pairs["rejected_tokens"].roll(1, 0)[:, P:])
-    assert torch.equal(pairs["kl_mask"], pairs["rejected_mask"].roll(1, 0))
-    ref = rlhf.sequence_logprobs(sft, pairs["kl_tokens"], pairs["kl_mask"], 1.0)
-    torch.testing.assert_close(pairs["kl_ref"], ref)
     n = len(pairs["kept"])
     assert pairs["kept"].tolist() == [i < 0.25 * n for i in range(n)]
+    rows = torch.tensor([0, n - 1, 1, n - 2, 2, n // 2])  # kept and not kept, mixed
+    mb = {key: value[rows] for key, value in pairs.items()}
+    mb = rlhf.kto_mismatched(sft, mb, args)
+    P = rlhf.PROMPT_LENGTH
+    kept = [i for i in range(len(rows)) if mb["kept"][i]]
+    assert 0 < len(kept) < len(rows)
+    own = [(mb["chosen_tokens"][i], mb["chosen_mask"][i]) for i in kept]
+    own += [(mb["rejected_tokens"][i], mb["rejected_mask"][i]) for i in range(len(rows))]
+    assert len(mb["kl_tokens"]) == len(own)
+    for j, (tokens, _) in enumerate(own):  # row j: its own prompt, and the response of row j - 1
+        previous_tokens, previous_mask = own[j - 1]
+        assert torch.equal(mb["kl_tokens"][j, :P], tokens[:P])
+        assert torch.equal(mb["kl_tokens"][j, P:], previous_tokens[P:])
+        assert torch.equal(mb["kl_mask"][j], previous_mask)
+    ref = rlhf.sequence_logprobs(sft, mb["kl_tokens"], mb["kl_mask"], 1.0)
+    torch.testing.assert_close(mb["kl_ref"], ref)
+
+
+def test_kto_holds_its_reference_point_constant_where_it_is_positive():
+    """z0 = max(0, the mismatched pairs' mean implied reward) is a constant of KTO's gradient, as in TRL. Here it is
+    positive (0.5), so the clamp passes a gradient: dpo_update's gradient must be that of the loss with z0 detached,
+    and differ from the loss with z0 live. The logged z0 and the mean it clamps are the values by hand."""
+    agent, mb = moved_policy_and_pair()
+    mismatched, kl_mask = tokens_of("the plot was bad and the cast was fine <eos>")
+    mismatched[:, : rlhf.PROMPT_LENGTH] = mb["chosen_tokens"][:, : rlhf.PROMPT_LENGTH]
+    with torch.no_grad():  # pi_SFT's log-prob set 1 nat below pi's: the implied reward is beta x 1 = 0.5
+        kl_ref = rlhf.sequence_logprobs(agent.policy, mismatched, kl_mask, 1.0) - 1.0
+    mb |= {"kl_tokens": mismatched, "kl_mask": kl_mask, "kl_ref": kl_ref, "kept": torch.tensor([True])}
+    args = rlhf.Args(kl_coef=0.5, kto=True, kto_weights=(1.0, 2.0), max_grad_norm=1e9)  # no clipping of the norm
+
+    def gradient(z0_is_constant):
+        r = {
+            side: 0.5
+            * (rlhf.sequence_logprobs(agent.policy, mb[f"{side}_tokens"], mb[f"{side}_mask"], 1.0) - mb[f"{side}_ref"])
+            for side in ("chosen", "rejected", "kl")
+        }
+        z0 = r["kl"].mean().clamp(min=0)
+        z0 = z0.detach() if z0_is_constant else z0
+        loss = (1.0 * (1 - torch.sigmoid(r["chosen"] - z0)) + 2.0 * (1 - torch.sigmoid(z0 - r["rejected"]))) / 2
+        return torch.autograd.grad(loss.sum(), list(agent.policy.parameters()), allow_unused=True)
+
+    constant, live = gradient(True), gradient(False)
+    stats = rlhf.dpo_update(agent, torch.optim.SGD(agent.parameters(), lr=0.0), mb, args)
+    assert stats["kto_z0"].item() == pytest.approx(0.5, rel=1e-4)
+    assert stats["kto_mismatched_reward"].item() == pytest.approx(0.5, rel=1e-4)
+    seen = [p.grad for p in agent.policy.parameters()]
+    differs = False
+    for g, c, lv in zip(seen, constant, live, strict=True):
+        if c is None:
+            continue
+        torch.testing.assert_close(g, c, rtol=1e-4, atol=1e-7)
+        differs |= not torch.allclose(c, lv, rtol=1e-3, atol=1e-6)
+    assert differs  # the test can tell the two apart
+
+
+def test_every_member_of_an_ensemble_has_its_own_data_order_and_head(tiny_run, tmp_path, monkeypatch):
+    """--rm-ensemble 4: each member's first epoch visits the pairs in an order of its own, and its score head starts
+    from weights of its own, not zeros. With --rm-same-head, and for a single reward model, every head starts at 0."""
+    _, run_dir = tiny_run
+    heads, orders = [], []
+    fit, randperm = rlhf.fit, torch.randperm
+
+    def fit_seen(model, *rest):
+        heads.append(torch.cat([model.score_head.weight.flatten(), model.score_head.bias]).clone())
+        return fit(model, *rest)
+
+    def randperm_seen(n, *rest, **kwargs):
+        perm = randperm(n, *rest, **kwargs)
+        orders.append(perm.clone())
+        return perm
+
+    monkeypatch.setattr(rlhf, "fit", fit_seen)
+    monkeypatch.setattr(torch, "randperm", randperm_seen)
+    for members, same_head in ((4, False), (4, True), (1, False)):
+        heads.clear()
+        orders.clear()
+        args = rlhf_tiny_args(tmp_path, f"k{members}{same_head}", rm_ensemble=members, rm_same_head=same_head)
+        rlhf.train(rlhf.Args(**{**vars(args), "total_episodes": 16, "sft_checkpoint": str(run_dir / "sft.pt")}))
+        firsts = orders[: members * args.rm_epochs : args.rm_epochs]  # each member's first epoch (rm_epochs each)
+        assert len(heads) == members and len(firsts) == members
+        own_heads = members > 1 and not same_head
+        for a in range(members):
+            assert (torch.count_nonzero(heads[a]) > 0) == own_heads, a
+            for b in range(a):
+                assert not torch.equal(firsts[a], firsts[b]), (a, b)
+                assert torch.equal(heads[a], heads[b]) != own_heads, (a, b)
 
 
 def test_each_ensemble_aggregate_is_the_reward_ppo_learns_from(tiny_run, tmp_path, monkeypatch):
