@@ -1,12 +1,12 @@
 """The results folder, benchmarks/results/<folder>/, in both directions: what run.py writes of a finished run and what
 the reports read back. Its one owner, so that the format is written down once.
 
-A suite's folder holds one CSV a run, <env>__<variant>__seed<N>.csv: '# key: value' header lines (the command,
-commit, package versions, machine, wall time, ...), then global_step, episodic_return, episodic_length, a row an
-episode. Beside them, per run and per iteration, the series a run logged: beta/ (an adaptive or fixed KL penalty's
-beta and the update's KL), updates/ (UPDATE_STATS), rlhf/ (RLHF_STATS), and samples/ (the responses an RLHF run
-printed last); best_of_n/seed<N>.csv is benchmarks/best_of_n.py's. results/random/<env>.csv is the random policy's
-(benchmarks/random_score.py), and benchmarks/reference_figures.csv the published figures.
+A suite's folder holds one CSV a run, <env>__<variant>__seed<N>.csv: '# key: value' header lines (the command, commit,
+package versions, machine, wall time, ...), then global_step, episodic_return, episodic_length, a row an episode. Beside
+them, per run and per iteration, the series a run logged: beta/ (an adaptive or fixed KL penalty's beta and the update's
+KL), updates/ (UPDATE_STATS), rlhf/ (RLHF_STATS), ensemble/ (ENSEMBLE_STATS), kto/ (KTO_STATS), and samples/ (the
+responses an RLHF run printed last); best_of_n/seed<N>.csv is benchmarks/best_of_n.py's. results/random/<env>.csv is the
+random policy's (benchmarks/random_score.py), and benchmarks/reference_figures.csv the published figures.
 """
 
 from __future__ import annotations
@@ -48,6 +48,9 @@ RLHF_STATS = (
 RM_ACCURACY = "pairs to one prompt among the last 640 responses"
 # An --rm-ensemble run's members (ppo_rlhf.py's rlhf/rm_disagreement and rlhf/rm_member<k>), in <folder>/ensemble/.
 ENSEMBLE_STATS = ("rm_disagreement",)
+# A --kto run's reference point z0, and the mismatched pairs' mean implied reward that it clamps (losses/*), in
+# <folder>/kto/.
+KTO_STATS = ("kto_z0", "kto_mismatched_reward")
 
 # best_of_n.py's columns, in <folder>/best_of_n/seed<N>.csv.
 BEST_OF_N = ("n", "kl", "score", "gold_score", "well_formed", "spam", "garbled", "rm_accuracy")
@@ -108,6 +111,7 @@ class RunLogs:
     rm_held_out_accuracy: float | None  # an RLHF run: its reward model's accuracy on held-out pairs
     samples: list[str]  # an RLHF run: the responses it printed last, with their scores
     ensemble: list | None = None  # an --rm-ensemble run: (step, rm_disagreement, each member's score) per iteration
+    kto: list | None = None  # a --kto run: (step, *KTO_STATS) per iteration
 
     def header(self):
         """The CSV header lines that come from the run's own logs: [(key, value), ...]."""
@@ -159,6 +163,7 @@ def read_run(run_dir):
         rm_held_out_accuracy=held_out_accuracy(run_dir),
         samples=last_samples(run_dir) if rlhf else [],
         ensemble=scalars(acc, "rlhf/", (*ENSEMBLE_STATS, *sorted(members, key=len))) if members else None,
+        kto=scalars(acc, "losses/", KTO_STATS),
     )
 
 
@@ -219,6 +224,8 @@ def write_run(results_dir, name, header, logs):
         if logs.ensemble:
             members = [f"rm_member{k}" for k in range(len(logs.ensemble[0]) - 1 - len(ENSEMBLE_STATS))]
             write_series(results_dir / "ensemble" / f"{name}.csv", (*ENSEMBLE_STATS, *members), logs.ensemble)
+        if logs.kto:
+            write_series(results_dir / "kto" / f"{name}.csv", KTO_STATS, logs.kto)
         (results_dir / "samples" / f"{name}.txt").write_text("".join(f"{line}\n" for line in logs.samples))
     path = results_dir / f"{name}.csv"
     write_csv(path, [*header, *logs.header()], logs.rows)  # last: the CSV's presence means the run is finished
@@ -331,6 +338,16 @@ def read_ensemble_series(folder):
     return {
         (variant, seed): np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
         for _, variant, seed, path in run_files(Path(folder) / "ensemble")
+    }
+
+
+def read_kto_series(folder):
+    """{(variant, seed): numpy array [iterations, 1 + len(KTO_STATS)]} from <folder>/kto/."""
+    import numpy as np
+
+    return {
+        (variant, seed): np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+        for _, variant, seed, path in run_files(Path(folder) / "kto")
     }
 
 

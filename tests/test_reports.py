@@ -423,6 +423,26 @@ def test_readme_results_block_is_generated_from_the_committed_csvs(path, full):
             assert (folder / "curves" / f"{env}.png").exists(), (folder, env)
 
 
+def test_the_rlhf_report_gives_ktos_reference_point_from_its_series(tmp_path):
+    """A --kto run's kto/ series (z0, and the mismatched pairs' mean implied reward that it clamps) becomes its row of
+    the report's section on KTO's reference point: z0's range, how many iterations had z0 > 0, and the mean reward
+    over the first and last tenth with its range. A run without the series has no row."""
+    folder = tmp_path / "rlhf"
+    for variant in ("kto0.1", "dpo0.1"):
+        fake_run(folder, "reviews", variant, 1, 1.0, steps=12_800, meta=[("rm_held_out_accuracy", "0.9")])
+        rows = [[(i + 1) * 128] + [0.5 + i / 100 for _ in RLHF_STATS] for i in range(100)]
+        write_series(folder / "rlhf" / f"reviews__{variant}__seed1.csv", RLHF_STATS, rows)
+    mismatched = [-i / 100 for i in range(100)]  # 0 to -0.99: z0 is 0 throughout but where a minibatch was above 0
+    z0 = [0.02 if i in (3, 7) else 0.0 for i in range(100)]
+    rows = [[(i + 1) * 128, z0[i], mismatched[i]] for i in range(100)]
+    write_series(folder / "kto" / "reviews__kto0.1__seed1.csv", ("kto_z0", "kto_mismatched_reward"), rows)
+    text = report.report(folder, results=tmp_path)
+    assert "## KTO's reference point" in text
+    # first tenth: the mean of 0 ... -0.09; last tenth: of -0.90 ... -0.99
+    assert "| kto0.1 | 1 | 0.0000, 0.0200 | 2 of 100 | -0.045, -0.945, -0.990, 0.000 |" in text
+    assert "| dpo0.1 | 1 | 0.0000" not in text
+
+
 def test_the_readmes_rlhf_block_finds_gold_falling_while_the_score_holds(tmp_path):
     """rlhf_block counts a seed as over-optimized when its gold score rose to its peak and fell from it, each past the
     noise between tenths and by at least rlhf_series.MIN_FALL, while neither the KL nor the RM score fell past their
@@ -824,6 +844,45 @@ def test_the_overoptimization_report_answers_whether_an_ensemble_peaks_later_and
     assert "and in 3 the disagreement at the gold peak was more than twice that of the first window" in e
     assert "ens4-mean seed 3: gold " in e and "; 3 of 4 members rated the end at least as high" in e
     assert "| ens4-mean | 4,096 × 4 |" in text
+
+
+def test_the_overoptimization_report_sets_members_with_heads_of_their_own_against_members_with_one_head(tmp_path):
+    """(d) for both kinds of member: each ensemble arm's disagreement before PPO (its first rollout's, the first row of
+    its ensemble series), and the seeded heads' peak against the same seed's -same-head run's, here higher and later
+    (Gao et al.'s RL form with a larger alpha)."""
+    from reports import overoptimization as over
+
+    folder = tmp_path / "rlhf-long"
+    arms = {"beta0": (2.0, 0.0), "ens4-mean": (2.4, 0.4), "ens4-mean-same-head": (2.2, 0.2)}  # alpha, first spread
+    d = np.linspace(0.05, 8.0, 200)
+    for variant, (alpha, spread) in arms.items():
+        for seed in (1, 2, 3):
+            fake_run(folder, "reviews", variant, seed, 1.0, steps=102_400)
+            gold = 1.0 + over.curve("rl", alpha, 1.0, d)
+            stats = [{"score": i / 199, "gold_score": gold[i], "kl": d[i] ** 2} for i in range(200)]
+            rows = [[(i + 1) * 512] + [s.get(name, 0.0) for name in RLHF_STATS] for i, s in enumerate(stats)]
+            write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", RLHF_STATS, rows)
+            if variant != "beta0":
+                rows = [[(i + 1) * 512, spread + seed / 100, *(i / 199 + k / 10 for k in range(4))] for i in range(200)]
+                columns = ("rm_disagreement", *(f"rm_member{k}" for k in range(4)))
+                write_series(folder / "ensemble" / f"reviews__{variant}__seed{seed}.csv", columns, rows)
+    text = report.report(folder, results=tmp_path)
+
+    def peak(alpha):  # the 3 windows of 20 iterations of highest mean gold: gain over the first iteration, and d
+        gold = (1.0 + over.curve("rl", alpha, 1.0, d)).reshape(10, 20).mean(1)
+        i = int(np.argmax([gold[j : j + 3].mean() for j in range(8)]))
+        kl = (d**2).reshape(10, 20).mean(1)
+        return gold[i : i + 3].mean() - (1.0 + over.curve("rl", alpha, 1.0, d[0])), np.sqrt(kl[i : i + 3].mean())
+
+    (gain, d_peak), (same_gain, same_d) = peak(2.4), peak(2.2)
+    line = next(line for line in text.splitlines() if line.startswith("- **(d)"))
+    assert "by `ens4-mean` 0.42 ± 0.01, `ens4-mean-same-head` 0.22 ± 0.01." in line
+    assert gain - same_gain > 0.1 and d_peak > same_d
+    assert (
+        "Members with heads of their own (`ens4-mean`) against the same seed's members with one head"
+        f" (`ens4-mean-same-head`): the peak gain is above theirs ({gain - same_gain:+.2f} ± 0.00" in line
+    )
+    assert f"and its d above theirs ({d_peak - same_d:+.2f} ± 0.00" in line
 
 
 def test_the_fits_of_a_reward_model_size_give_the_held_out_accuracy_of_the_single_reward_models_fitted(tmp_path):

@@ -779,6 +779,17 @@ def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(method, tmp_p
     scalars = tb_scalars(tmp_path / "run")
     assert {"rlhf/score", "rlhf/gold_score", "rlhf/kl", "losses/implicit_accuracy"} <= set(scalars)
     assert "losses/value_loss" not in scalars
+    assert ({"losses/kto_z0", "losses/kto_mismatched_reward"} <= set(scalars)) == (method == "KTO")
+    # The results folder keeps KTO's z0 per iteration, for the rlhf report's account of it.
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import results
+
+    results.write_run(tmp_path / "results", "reviews__arm__seed1", [], results.read_run(tmp_path / "run"))
+    kto = results.read_kto_series(tmp_path / "results")
+    assert list(kto) == ([("arm", 1)] if method == "KTO" else [])
+    if kto:
+        steps, z0, mismatched = kto["arm", 1].T
+        assert steps.tolist() == [16, 32, 48, 64] and (z0 >= 0).all() and (z0 >= mismatched - 1e-6).all()
 
 
 def test_a_stopped_dpo_run_resumes_bit_for_bit(tmp_path):

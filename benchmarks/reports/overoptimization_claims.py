@@ -142,7 +142,10 @@ def ensemble_claims(series, sft_of, ensemble, rule=CURRENT):
     if parts:
         lines.append(
             "- **(d) Does an ensemble of reward models peak later or higher than one RM on the same pairs?** (Coste et"
-            f" al. 2023; peaks {PEAKS[rule]}, against the same seed's β = 0 run with one RM) " + "; ".join(parts) + "."
+            f" al. 2023; peaks {PEAKS[rule]}, against the same seed's β = 0 run with one RM) "
+            + "; ".join(parts)
+            + "."
+            + head_lines(series, sft_of, ensemble, keys, rule)
         )
     rows = []
     herded = 0
@@ -184,3 +187,37 @@ def ensemble_claims(series, sft_of, ensemble, rule=CURRENT):
             " share their blind spots) " + answer
         )
     return lines
+
+
+SAME_HEAD = "-same-head"  # the variants whose members start from one zero head and differ in data order only
+
+
+def head_lines(series, sft_of, ensemble, keys, rule):
+    """(d) for the two kinds of member: how far apart the members are before PPO (their disagreement, the std of their
+    scores, on the first rollout's responses, which are pi_SFT's), and seeded heads' peak against the same head's,
+    seed by seed, for each aggregate that ran both ways."""
+    first = {}
+    for key in keys:
+        if key in ensemble:
+            first.setdefault(key[0], []).append(ensemble[key][0, 1 + ENSEMBLE_STATS.index("rm_disagreement")])
+    text = ""
+    if first:
+        spread = ", ".join(f"`{variant}` {cell(values)}" for variant, values in first.items())
+        text += (
+            " Before PPO, on the first rollout's 64 responses (π_SFT's), the members disagree (the std of their scores,"
+            f" in the RM's normalized units, mean over responses; mean ± std over seeds) by {spread}."
+        )
+    for variant in sorted({k[0] for k in keys if k[0].endswith(SAME_HEAD)}):
+        seeded = variant.removesuffix(SAME_HEAD)
+        seeds = sorted(k[1] for k in keys if k[0] == variant and (seeded, k[1]) in series)
+        if not seeds:
+            continue
+        mine = [peak_of(series[seeded, s], sft_of[seeded, s], rule) for s in seeds]
+        theirs = [peak_of(series[variant, s], sft_of[variant, s], rule) for s in seeds]
+        higher = [m[0] - t[0] for m, t in zip(mine, theirs, strict=True)]
+        later = [m[1] - t[1] for m, t in zip(mine, theirs, strict=True)]
+        text += (
+            f" Members with heads of their own (`{seeded}`) against the same seed's members with one head"
+            f" (`{variant}`): the peak gain is {verdict(higher, 'theirs')}, and its d {verdict(later, 'theirs')}."
+        )
+    return text

@@ -21,7 +21,16 @@ from reports.rlhf_series import (
     without_old_accuracy,
 )
 from reports.stats import mean_std
-from results import BEST_OF_N, RESULTS, RLHF_STATS, load_runs, read_best_of_n, read_rlhf_series
+from results import (
+    BEST_OF_N,
+    KTO_STATS,
+    RESULTS,
+    RLHF_STATS,
+    load_runs,
+    read_best_of_n,
+    read_kto_series,
+    read_rlhf_series,
+)
 from suites import SUITES
 
 ORDER = 0  # where its suites stand in the READMEs' Results block: by ORDER, then by folder name
@@ -59,6 +68,38 @@ def best_of_n_lines(best):
             values = [t[i, BEST_OF_N.index(name)] for t in tables if not np.isnan(t[i, BEST_OF_N.index(name)])]
             cells.append(f"{fmt(*mean_std(values))} ({len(values)})" if values else "–")
         lines.append(f"| {n:.0f} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def kto_lines(folder):
+    """report.md's account of KTO's reference point z0 in each --kto run (<folder>/kto/): its range, and that of the
+    mismatched pairs' mean implied reward that it clamps at 0, over every minibatch's mean of an iteration."""
+    import numpy as np
+
+    series = read_kto_series(folder)
+    if not series:
+        return []
+    lines = [
+        "",
+        "## KTO's reference point",
+        "",
+        "z0 = max(0, the mean implied reward β log(π(y'|x) / π_SFT(y'|x)) of mismatched pairs): each minibatch's own"
+        " responses, each after another pair's prompt, as TRL's KTOTrainer builds them. Those responses are π_SFT's"
+        " samples, not π's, so their mean estimates about −β KL[π_SFT || π] ≤ 0 where KTO means β KL[π || π_SFT] ≥ 0."
+        " Per run, over its iterations (each the mean of its minibatches):",
+        "",
+        "| setting | seed | z0: min, max | iterations with z0 > 0 | mismatched reward: first tenth, last tenth, min,"
+        " max |",
+        "|---" * 5 + "|",
+    ]
+    for (variant, seed), run in sorted(series.items()):
+        z0, mismatched = run[:, 1 + KTO_STATS.index("kto_z0")], run[:, 1 + KTO_STATS.index("kto_mismatched_reward")]
+        tenth = max(len(run) // 10, 1)
+        lines.append(
+            f"| {variant} | {seed} | {z0.min():.4f}, {z0.max():.4f} | {int(np.sum(z0 > 0))} of {len(z0)} |"
+            f" {mismatched[:tenth].mean():.3f}, {mismatched[-tenth:].mean():.3f}, {mismatched.min():.3f},"
+            f" {mismatched.max():.3f} |"
+        )
     return lines
 
 
@@ -119,7 +160,7 @@ def rlhf_report(folder, runs):
             cells += [f"{tenths(run, name)[-1]:.2f}" for name in ("spam", "garbled")]
             cells.append(fell.get((variant, seed), "no"))
             lines.append(f"| {variant} | {seed} | " + " | ".join(cells) + " |")
-    lines += ["", BLIND_SPOT]
+    lines += ["", BLIND_SPOT, *kto_lines(folder)]
     if best:
         meta = [m for m, _ in best.values()]
         wall = sum(float(m.get("wall_time_s", 0)) for m in meta)
