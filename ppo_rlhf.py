@@ -63,6 +63,7 @@ class Args:
     rm_same_head: bool = False  # an ablation: the K members all start from the zero head and differ in order only
     rm_ensemble_agg: Literal["mean", "min", "uwo"] = "mean"  # how stage 3 scores with K: uwo is mean - lambda variance
     uwo_coef: float = 0.1  # lambda of uwo, the weight of the members' variance (Coste et al.'s PPO setting)
+    reward: Literal["outcome", "process"] = "outcome"  # one score a response, or one a clause (ProcessRewardModel)
     # Stage 3: PPO against the reward model
     total_episodes: int = 12_800  # responses sampled in all, rounded down to whole batches
     batch_size: int = 64  # prompts per rollout
@@ -100,13 +101,16 @@ def masked_mean(x, mask=None):
 
 def compute_rewards(scores, logprobs, ref_logprobs, mask, kl_coef):
     """Ziegler et al.'s R(x, y) = r(x, y) - beta log(pi(y|x) / pi_SFT(y|x)) over the tokens [B, L]: -beta times each
-    token's log-ratio, and the score at the last masked position (a row with no EOS gets its penalty as its score).
+    token's log-ratio, and the score at the last masked position (a row with no EOS gets its penalty as its score);
+    or, with --reward process, scores [B, L]: a score at each clause's closing token, where they stand.
 
     Its expectation over pi's responses is the objective E[r] - beta KL[pi || pi_SFT], whose maximum is pi* = pi_SFT
     exp(r / beta) / Z. So beta sets how far pi may move from pi_SFT; at beta = 0 the optimum is the argmax of r, one
     response (the entropy collapses onto whatever the RM overrates); the log-ratio (k1) sits in the reward because
     its mean over pi's own samples is that KL; and DPO (Rafailov et al. 2023) solves for pi* from pairs directly."""
     rewards = kl_coef * (ref_logprobs - logprobs) * mask
+    if scores.dim() == 2:  # process supervision: the clauses' scores stay at their own tokens
+        return rewards + scores * mask
     rewards[torch.arange(len(scores)), mask.sum(1).long() - 1] += scores
     return rewards
 
@@ -240,6 +244,24 @@ def gold_scores(tokens, mask):
 
 
 @torch.no_grad()
+def clause_golds(tokens, mask):
+    """Process supervision's labels [B, L]: each step's gold value at the token that closes it ("and" or EOS), 0
+    elsewhere; and where those tokens are. A clause has its valence (x2 after "very", x-1 after "not"); a step that is
+    no clause (garbled), or says one already said, the prompt's included (spam), GOLD_PENALTY."""
+    labels = torch.zeros_like(mask)
+    for i, row in enumerate(tokens.tolist()):
+        words = [WORDS[t] for t in row[: PROMPT_LENGTH + int(mask[i].sum())]]
+        said = [" ".join(words[1 : PROMPT_LENGTH - 1])]  # the prompt's clause
+        start = PROMPT_LENGTH
+        for j in [j for j in range(PROMPT_LENGTH, len(words)) if words[j] in ("and", "<eos>")]:
+            clause = " ".join(words[start:j])
+            match = re.fullmatch(CLAUSE, clause) if clause not in said else None
+            labels[i, j - PROMPT_LENGTH] = MODIFIERS.get(match[2], 1) * VALENCE[match[3]] if match else GOLD_PENALTY
+            said.append(clause)
+            start = j + 1
+    return labels, (labels != 0).float()  # no step's gold is 0: the labels stand where the steps close
+
+
 def generate(lm, n, response_length, temperature, group_size=1):
     """n prompts "<bos> the NOUN was ADJ and", each group_size times, and lm's responses: sequences [n group_size,
     P + L] with PAD after the first EOS, and their mask, 1 on a response up to its first EOS included (on all of it if
@@ -288,6 +310,22 @@ class TinyLM(nn.Module):
         return self(tokens)[1][torch.arange(len(tokens)), PROMPT_LENGTH + mask.sum(1).long() - 1]
 
 
+class ProcessRewardModel(TinyLM):
+    """--reward process, process supervision (Uesato et al. 2022, Lightman et al. 2023): a reward model read at each
+    clause's closing token, fitted to each clause's gold value (clause_golds). It can say which clause is bad, where the
+    outcome RM gives a response one number and must learn which part earned it; it cannot know what it never saw
+    either: in pi_SFT's samples no clause is said twice."""
+
+    def clause_scores(self, tokens, mask):
+        """The scalar at each response token that closes a clause ("and" or EOS), 0 elsewhere [B, L]."""
+        closes = (tokens[:, PROMPT_LENGTH:] == TOKEN["and"]) | (tokens[:, PROMPT_LENGTH:] == EOS)
+        return self(tokens)[1][:, PROMPT_LENGTH:] * closes * mask
+
+    def score(self, tokens, mask):
+        """A response's whole score: the sum of its clauses'."""
+        return self.clause_scores(tokens, mask).sum(1)
+
+
 class Agent(nn.Module):
     """The policy pi_theta, started from pi_SFT, and its value function: by default a critic started from the RM,
     which reads responses as the RM does and cannot pull on the policy's weights; or a head on the policy (faster)."""
@@ -304,8 +342,8 @@ class Agent(nn.Module):
         return logits, values if self.critic is None else self.critic(tokens)[1]
 
 
-def new_model(args, device, state=None, members=1):
-    model = TinyLM(args.d_model, args.n_layer, args.n_head)
+def new_model(args, device, state=None, members=1, kind=TinyLM):
+    model = kind(args.d_model, args.n_layer, args.n_head)
     model = (model if members == 1 else Ensemble([copy.deepcopy(model) for _ in range(members)], args)).to(device)
     if state is not None:
         model.load_state_dict(state)
@@ -375,10 +413,12 @@ def preference_pairs(sft, args, device):
 def train_reward_model(args, sft, run_dir, device, stop):
     """Stage 2: a reward model, pi_SFT with its scalar head read at the EOS, fitted to pairs of pi_SFT's responses
     ranked by the gold reward. It only ever sees pi_SFT's text: what it says of any other text is a guess."""
+    kind = ProcessRewardModel if args.reward == "process" else TinyLM  # the same responses, labelled per clause
     if args.reward_model_checkpoint:
         state = load_checkpoint(args.reward_model_checkpoint, args, "reward_model")[0]["model"]
-        return new_model(args, device, state, args.rm_ensemble)
+        return new_model(args, device, state, args.rm_ensemble, kind)
     tokens, mask, chosen, rejected, n_train = preference_pairs(sft, args, device)
+    labels, ends = clause_golds(tokens, mask)
     steps = math.ceil(n_train * args.rm_epochs / args.rm_batch_size)
     saved = f"stage 1 is saved: go on with --sft-checkpoint {args.sft_checkpoint or os.path.join(run_dir, 'sft.pt')}"
     members = []
@@ -386,20 +426,24 @@ def train_reward_model(args, sft, run_dir, device, stop):
         if k:  # member k > 0: the same pairs, in the order of a seed of its own
             torch.manual_seed(args.seed + 1 + 1000 * k)
         order = torch.cat([torch.randperm(n_train, device=device) for _ in range(args.rm_epochs)])
-        reward_model = copy.deepcopy(sft)
+        reward_model = copy.deepcopy(sft) if kind is TinyLM else new_model(args, device, sft.state_dict(), kind=kind)
         if args.rm_ensemble > 1 and not args.rm_same_head:  # and a score head drawn from that seed, as Coste et al.'s
             reward_model.score_head.reset_parameters()
 
         def loss_fn(step, order=order, reward_model=reward_model):
             mb_inds = order[(step - 1) * args.rm_batch_size : step * args.rm_batch_size]
+            if kind is ProcessRewardModel:  # each clause's score's squared error from its gold, on the pairs' responses
+                rows = torch.cat([chosen[mb_inds], rejected[mb_inds]])
+                error = reward_model.clause_scores(tokens[rows], mask[rows]) - labels[rows]
+                return (error**2).sum() / ends[rows].sum()
             r_w = reward_model.score(tokens[chosen[mb_inds]], mask[chosen[mb_inds]])
             return preference_loss(r_w, reward_model.score(tokens[rejected[mb_inds]], mask[rejected[mb_inds]]))
 
         fit(reward_model, loss_fn, steps, args.rm_learning_rate, "2, reward model", stop, saved)
-        with torch.no_grad():  # normalize the score to mean 0 and std 1 on pi_SFT's responses, through the scalar head
-            scores = reward_model.score(tokens, mask)
+        with torch.no_grad():  # normalize the score to std 1 on pi_SFT's responses, and mean 0 but per clause (that
+            scores = reward_model.score(tokens, mask)  # shift would pay for each clause), through the scalar head
             reward_model.score_head.weight.div_(scores.std())
-            reward_model.score_head.bias.sub_(scores.mean()).div_(scores.std())
+            reward_model.score_head.bias.sub_(0 if kind is ProcessRewardModel else scores.mean()).div_(scores.std())
         members.append(reward_model)
     reward_model = members[0] if args.rm_ensemble == 1 else Ensemble(members, args)
     with torch.no_grad():
@@ -407,8 +451,22 @@ def train_reward_model(args, sft, run_dir, device, stop):
     accuracy = (scores[chosen[n_train:]] > scores[rejected[n_train:]]).float().mean().item()
     print(f"stage 2: the reward model ranks {accuracy:.1%} of {len(chosen) - n_train} held-out pairs as gold does")
     state = {"model": reward_model.state_dict(), "held_out_accuracy": accuracy}
+    if kind is ProcessRewardModel:  # and how often it rates a held-out clause good or bad as gold does
+        held_out = torch.cat([chosen[n_train:], rejected[n_train:]])
+        right, closes = clause_right(reward_model, tokens[held_out], mask[held_out])
+        state["held_out_clause_accuracy"] = (right.sum() / closes.sum()).item()
+        train = torch.cat([chosen[:n_train], rejected[:n_train]])  # the labels it cost, beside the pairs compared
+        state |= {"clause_labels": int(ends[train].sum()), "train_pairs": n_train}
+        print(f"stage 2: it rates {state['held_out_clause_accuracy']:.1%} of held-out clauses good or bad as gold does")
     save_checkpoint(os.path.join(run_dir, "reward_model.pt"), "reward_model", args, **state)
     return reward_model
+
+
+def clause_right(reward_model, tokens, mask):
+    """Where a process RM rates a clause good or bad (its score's sign) as gold does: 1 at those closing tokens [B, L];
+    and the closing tokens."""
+    labels, ends = clause_golds(tokens, mask)
+    return (reward_model.clause_scores(tokens, mask).sign() == labels.sign()) * ends, ends
 
 
 @torch.no_grad()
@@ -427,6 +485,10 @@ def rollout(agent, reference, reward_model, args):
     gold, forms = gold_scores(tokens, mask)
     batch = {"tokens": tokens, "responses": responses, "mask": mask, "logprobs": dist.log_prob(responses)}
     batch |= {"ref_logprobs": ref_logprobs, "values": values[:, PROMPT_LENGTH - 1 : -1] * mask, "scores": scores}
+    if isinstance(reward_model, ProcessRewardModel):  # each clause's score at its token; no EOS: the penalty at the end
+        last = F.one_hot(mask.sum(1).long() - 1, mask.shape[1]) * args.no_eos_score
+        batch["clause_scores"] = torch.where(has_eos[:, None], reward_model.clause_scores(tokens, mask), last)
+        batch["clause_right"], batch["clause_ends"] = clause_right(reward_model, tokens, mask)
     if isinstance(reward_model, Ensemble):  # each member's score [B, K]: do they agree on what pi writes?
         batch["rm_members"] = reward_model.score(tokens, mask, members=True).T
     return batch | forms | {"gold": gold, "has_eos": has_eos.float(), "entropy": dist.entropy()}
@@ -502,7 +564,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
 
         # REWARDS AND ADVANTAGES: the KL penalty at every token and the score at the EOS, then GAE over tokens.
         mask = batch["mask"]
-        rewards = compute_rewards(batch["scores"], batch["logprobs"], batch["ref_logprobs"], mask, kl_coef)
+        scores = batch.get("clause_scores", batch["scores"])  # with --reward process, a score at each clause's end
+        rewards = compute_rewards(scores, batch["logprobs"], batch["ref_logprobs"], mask, kl_coef)
         if ppo:
             advantages, batch["returns"] = compute_gae(rewards, batch["values"], mask, args.gamma, args.gae_lambda)
             # Whitened once over the batch's tokens; Ziegler et al.'s code, like core detail 7, whitens each minibatch.
@@ -546,7 +609,8 @@ def train(args, stop=()):
     device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device)
     if checkpoint:  # a resumed stage 3: stages 1 and 2 are in its checkpoint
         sft = new_model(args, device, checkpoint["reference"])
-        reward_model = new_model(args, device, checkpoint["reward_model"], args.rm_ensemble)
+        kind = ProcessRewardModel if args.reward == "process" else TinyLM
+        reward_model = new_model(args, device, checkpoint["reward_model"], args.rm_ensemble, kind)
     else:
         os.makedirs(run_dir, exist_ok=True)
         sft = train_sft(args, run_dir, device, stop)
@@ -759,6 +823,8 @@ def response_stats(batch, pool):
     stats["entropy"] = masked_mean(batch["entropy"], mask)
     stats |= {"response_length": mask.sum(1).mean(), "eos_fraction": batch["has_eos"].mean()}
     stats["rm_accuracy"], stats["rm_pairs"] = pairwise_accuracy(*pool)
+    if "clause_right" in batch:  # a process RM: how often it rates the policy's clauses as gold does
+        stats["rm_clause_accuracy"] = batch["clause_right"].sum() / batch["clause_ends"].sum()
     if "rm_members" in batch:  # an ensemble's members, each's mean score, and their disagreement (their std)
         stats |= {f"rm_member{k}": score.mean() for k, score in enumerate(batch["rm_members"].T)}
         stats["rm_disagreement"] = batch["rm_members"].std(1).mean()
@@ -832,6 +898,8 @@ def check_args(args):
         raise ValueError(f"--kto-weights must be two positive numbers, got {args.kto_weights}")
     if args.ipo and not args.dpo:
         raise ValueError("--ipo is a loss of --dpo: add --dpo")
+    if args.reward == "process" and args.rm_ensemble > 1:
+        raise ValueError("--reward process trains one process reward model: drop --rm-ensemble")
     if args.rm_same_head and args.rm_ensemble == 1:
         raise ValueError("--rm-same-head is how the members of an ensemble start: add --rm-ensemble K > 1")
     if args.adaptive_kl and args.kl_coef == 0:

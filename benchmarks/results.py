@@ -4,9 +4,10 @@ the reports read back. Its one owner, so that the format is written down once.
 A suite's folder holds one CSV a run, <env>__<variant>__seed<N>.csv: '# key: value' header lines (the command, commit,
 package versions, machine, wall time, ...), then global_step, episodic_return, episodic_length, a row an episode. Beside
 them, per run and per iteration, the series a run logged: beta/ (an adaptive or fixed KL penalty's beta and the update's
-KL), updates/ (UPDATE_STATS), rlhf/ (RLHF_STATS), ensemble/ (ENSEMBLE_STATS), kto/ (KTO_STATS), and samples/ (the
-responses an RLHF run printed last); best_of_n/seed<N>.csv is benchmarks/best_of_n.py's. results/random/<env>.csv is the
-random policy's (benchmarks/random_score.py), and benchmarks/reference_figures.csv the published figures.
+KL), updates/ (UPDATE_STATS), rlhf/ (RLHF_STATS), ensemble/ (ENSEMBLE_STATS), kto/ (KTO_STATS), process/
+(PROCESS_STATS), and samples/ (the responses an RLHF run printed last); best_of_n/seed<N>.csv is
+benchmarks/best_of_n.py's. results/random/<env>.csv is the random policy's (benchmarks/random_score.py), and
+benchmarks/reference_figures.csv the published figures.
 """
 
 from __future__ import annotations
@@ -51,6 +52,12 @@ ENSEMBLE_STATS = ("rm_disagreement",)
 # A --kto run's reference point z0, and the mismatched pairs' mean implied reward that it clamps (losses/*), in
 # <folder>/kto/.
 KTO_STATS = ("kto_z0", "kto_mismatched_reward")
+# A --reward process run's share of the policy's clauses its reward model rates good or bad as gold does (rlhf/*), in
+# <folder>/process/.
+PROCESS_STATS = ("rm_clause_accuracy",)
+# What a process RM's reward_model.pt says of it, in its run's CSV header as rm_<fact>: its accuracy on held-out
+# clauses, and the labels it cost (clauses) beside the comparisons an outcome RM of the same responses learns from.
+PROCESS_RM = ("held_out_clause_accuracy", "clause_labels", "train_pairs")
 
 # best_of_n.py's columns, in <folder>/best_of_n/seed<N>.csv.
 BEST_OF_N = ("n", "kl", "score", "gold_score", "well_formed", "spam", "garbled", "rm_accuracy")
@@ -112,12 +119,18 @@ class RunLogs:
     samples: list[str]  # an RLHF run: the responses it printed last, with their scores
     ensemble: list | None = None  # an --rm-ensemble run: (step, rm_disagreement, each member's score) per iteration
     kto: list | None = None  # a --kto run: (step, *KTO_STATS) per iteration
+    process: list | None = None  # a --reward process run: (step, *PROCESS_STATS) per iteration
+    rm_process: dict | None = None  # a --reward process run: PROCESS_RM's facts of its reward model
 
     def header(self):
         """The CSV header lines that come from the run's own logs: [(key, value), ...]."""
         return [
             *([("beta_range", self.beta_range)] if self.beta_range else []),
             *([("rm_held_out_accuracy", f"{self.rm_held_out_accuracy:.4f}")] if self.rm_held_out_accuracy else []),
+            *(
+                (f"rm_{key}", f"{value:.4f}" if isinstance(value, float) else f"{value}")
+                for key, value in (self.rm_process or {}).items()
+            ),
             *([("rm_accuracy", RM_ACCURACY)] if self.rlhf else []),
         ]
 
@@ -161,9 +174,11 @@ def read_run(run_dir):
         updates=scalars(acc, "losses/", UPDATE_STATS),
         rlhf=rlhf,
         rm_held_out_accuracy=held_out_accuracy(run_dir),
+        rm_process=process_facts(run_dir),
         samples=last_samples(run_dir) if rlhf else [],
         ensemble=scalars(acc, "rlhf/", (*ENSEMBLE_STATS, *sorted(members, key=len))) if members else None,
         kto=scalars(acc, "losses/", KTO_STATS),
+        process=scalars(acc, "rlhf/", PROCESS_STATS),
     )
 
 
@@ -176,6 +191,17 @@ def held_out_accuracy(run_dir):
     import torch
 
     return torch.load(path, map_location="cpu", weights_only=True)["held_out_accuracy"]
+
+
+def process_facts(run_dir):
+    """{fact: value} of PROCESS_RM from a --reward process run's reward_model.pt; None for any other run."""
+    path = Path(run_dir) / "reward_model.pt"
+    if not path.exists():
+        return None
+    import torch
+
+    saved = torch.load(path, map_location="cpu", weights_only=True)
+    return {key: saved[key] for key in PROCESS_RM} if all(key in saved for key in PROCESS_RM) else None
 
 
 def last_samples(run_dir, count=3):
@@ -226,6 +252,8 @@ def write_run(results_dir, name, header, logs):
             write_series(results_dir / "ensemble" / f"{name}.csv", (*ENSEMBLE_STATS, *members), logs.ensemble)
         if logs.kto:
             write_series(results_dir / "kto" / f"{name}.csv", KTO_STATS, logs.kto)
+        if logs.process:
+            write_series(results_dir / "process" / f"{name}.csv", PROCESS_STATS, logs.process)
         (results_dir / "samples" / f"{name}.txt").write_text("".join(f"{line}\n" for line in logs.samples))
     path = results_dir / f"{name}.csv"
     write_csv(path, [*header, *logs.header()], logs.rows)  # last: the CSV's presence means the run is finished
@@ -341,13 +369,14 @@ def read_ensemble_series(folder):
     }
 
 
-def read_kto_series(folder):
-    """{(variant, seed): numpy array [iterations, 1 + len(KTO_STATS)]} from <folder>/kto/."""
+def read_series(folder, series):
+    """{(variant, seed): numpy array [iterations, 1 + len(columns)]} of an optional series, kto/ (KTO_STATS) or
+    process/ (PROCESS_STATS), from <folder>/<series>/."""
     import numpy as np
 
     return {
         (variant, seed): np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-        for _, variant, seed, path in run_files(Path(folder) / "kto")
+        for _, variant, seed, path in run_files(Path(folder) / series)
     }
 
 

@@ -166,12 +166,16 @@ SUITES = {
             # lambda_D n_D / (lambda_U n_U) stays 1, in the range [1, 4/3] its paper recommends for imbalanced data
             "kto0.1": ("ppo_rlhf.py", ["--kto", "--kl-coef", "0.1"]),
             "kto0.1-tenth": ("ppo_rlhf.py", ["--kto", "--kl-coef", "0.1", "--kto-desirable-share", "0.1"] + KTO_TENTH),
+            # Process supervision: a reward model fitted to each clause's gold on the outcome RM's responses, its
+            # scores at the clauses' closing tokens, at the default beta, beside beta0.05 (the outcome RM)
+            "process": ("ppo_rlhf.py", ["--reward", "process"]),
         },
         ["reviews"],
         [1, 2, 3],
         12_800,
         "ppo_rlhf.py with beta 0, 0.01, 0.05 (its default) and 0.2, the adaptive controller toward 2 nats, GRPO's,"
-        " Dr. GRPO's and RLOO's advantages at beta 0.05, DPO at beta 0.1 and 0.5, IPO and KTO at 0.1",
+        " Dr. GRPO's and RLOO's advantages at beta 0.05, DPO at beta 0.1 and 0.5, IPO and KTO at 0.1, and a process"
+        " reward model at 0.05",
         env_flag=None,
         budget_flag="--total-episodes",
         report="rlhf",
@@ -187,6 +191,8 @@ SUITES = {
             "beta0.05": ("ppo_rlhf.py", []),
             "rm1024-beta0": ("ppo_rlhf.py", ["--rm-pairs", "1024", "--kl-coef", "0"]),
             "rm16384-beta0": ("ppo_rlhf.py", ["--rm-pairs", "16384", "--kl-coef", "0"]),
+            # Process supervision at beta 0, beside beta0: does a reward per clause over-optimize, and onto what?
+            "process-beta0": ("ppo_rlhf.py", ["--reward", "process", "--kl-coef", "0"]),
             # Reward-model ensembles (Coste et al. 2023): 4 RMs on the default 4,096 pairs, at beta 0. The mean, and
             # the worst case (min) or the uncertainty-weighted mean (uwo), whichever peaked higher in gold over windows
             # of 20 iterations in a pilot of seed 4 at half the length (rlhf-long_51200/); seeds 1-3. Each member
@@ -209,7 +215,7 @@ SUITES = {
         [1, 2, 3],
         102_400,
         "ppo_rlhf.py past the gold peak: beta 0 and 0.05, beta 0 with reward models from 1,024 and 16,384 pairs, and"
-        " with ensembles of 4 (their mean, their minimum)",
+        " with ensembles of 4 (their mean, their minimum), and with a process reward model",
         env_flag=None,
         budget_flag="--total-episodes",
         report="overoptimization",

@@ -378,6 +378,8 @@ BAD_INPUTS = [
     (["--kto", "--kto-desirable-share", "1.5"], "--kto-desirable-share must be in [0, 1]"),
     (["--rm-ensemble", "0"], "--rm-ensemble must be positive"),
     (["--rm-same-head"], "--rm-same-head is how the members of an ensemble start: add --rm-ensemble K > 1"),
+    (["--reward", "process", "--rm-ensemble", "2"], "--reward process trains one process reward model: drop"),
+    (["--reward", "steps"], "invalid choice"),
     (["--rm-ensemble", "2", "--uwo-coef", "-1"], "--uwo-coef must be in [0, inf]"),
     (["--rm-ensemble-agg", "max"], "invalid choice"),
     (["--ipo"], "--ipo is a loss of --dpo: add --dpo"),
@@ -785,7 +787,7 @@ def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(method, tmp_p
     import results
 
     results.write_run(tmp_path / "results", "reviews__arm__seed1", [], results.read_run(tmp_path / "run"))
-    kto = results.read_kto_series(tmp_path / "results")
+    kto = results.read_series(tmp_path / "results", "kto")
     assert list(kto) == ([("arm", 1)] if method == "KTO" else [])
     if kto:
         steps, z0, mismatched = kto["arm", 1].T
@@ -812,3 +814,138 @@ def test_a_stopped_dpo_run_resumes_bit_for_bit(tmp_path):
     assert all(
         torch.equal(a, b) for a, b in zip(whole.state_dict().values(), resumed.state_dict().values(), strict=True)
     )
+
+
+# PROCESS SUPERVISION (--reward process): per-clause labels, a reward at each clause's closing token
+def test_clause_golds_label_each_step_at_its_closing_token_by_hand():
+    """Each response's steps, closed by "and" or EOS, against values worked out by hand; the prompt's clause is said
+    already, so saying it again is spam; a step that is no clause is garbled; nothing else is labelled."""
+    texts = {  # the prompt "the film was good and" is every text's first clause; then the labels, step by step
+        "the film was good and the plot was very bad <eos>": [-4],  # 2 x -2
+        "the film was good and the plot was not dull and the cast was superb <eos>": [1, 3],  # -1 x -1, then 3
+        "the film was good and the film was good <eos>": [-6],  # the prompt's clause again: spam
+        "the film was good and the plot was fine and the plot was fine <eos>": [1, -6],  # its own clause again
+        "the film was good and the plot was <eos>": [-6],  # no clause: garbled
+        "the film was good and the cast was awful and and <eos>": [-3, -6, -6],  # empty steps: garbled
+        "the film was good and the film was very good <eos>": [4],  # the same aspect judged anew: no repeat
+    }
+    tokens, mask = tokens_of(*texts)
+    labels, ends = rlhf.clause_golds(tokens, mask)
+    P = rlhf.PROMPT_LENGTH
+    for i, (text, expected) in enumerate(texts.items()):
+        response = text.split()[P - 1 :]
+        closing = [j for j, word in enumerate(response) if word in ("and", "<eos>")]
+        assert ends[i].nonzero().flatten().tolist() == closing, text
+        assert labels[i, closing].tolist() == expected, text
+        assert labels[i].count_nonzero() == len(expected)
+
+
+def test_on_well_formed_text_the_steps_and_the_prompts_clause_sum_to_gold():
+    """On the grammar's own reviews, the prompt's clause value plus the steps' labels is the gold reward, review by
+    review; and on spam or garbled text, some step carries the penalty."""
+    import random
+
+    rng = random.Random(1)
+    texts = []
+    while len(texts) < 300:
+        review = " ".join(rlhf.sample_review(rng))
+        if review.split()[4] == "and":  # a prompt as the script's: "the NOUN was ADJ and", then a response
+            texts.append(review)
+    texts += ["the film was good and the film was good <eos>", "the film was good and the plot was <eos>"]
+    tokens, mask = tokens_of(*texts)
+    labels, _ = rlhf.clause_golds(tokens, mask)
+    gold, forms = rlhf.gold_scores(tokens, mask)
+    for i, text in enumerate(texts):
+        if forms["well_formed"][i]:
+            prompt_clause = rlhf.parse_review(" ".join(text.split()[: rlhf.PROMPT_LENGTH - 2]) + " <eos>")
+            assert prompt_clause + labels[i].sum().item() == gold[i].item(), text
+        else:
+            assert rlhf.GOLD_PENALTY in labels[i].tolist(), text
+    assert forms["well_formed"][:300].all() and not forms["well_formed"][300:].any()
+
+
+def test_process_rewards_sit_at_the_clause_closing_tokens_not_summed_at_the_eos(tiny_run, tmp_path, monkeypatch):
+    """--reward process at beta 0: the rewards that GAE reads are the process RM's scalar at each "and" and EOS of a
+    response, and 0 at every other token; a response that never ends gets --no-eos-score at its last token alone.
+    Moved to the EOS, or summed into one, they would differ wherever a response has two clauses or more."""
+    _, run_dir = tiny_run
+    seen = []
+    compute_gae = rlhf.compute_gae
+    rollout = rlhf.rollout
+
+    def rollout_seen(agent, reference, reward_model, args):
+        batch = rollout(agent, reference, reward_model, args)
+        seen.append((reward_model, batch))
+        return batch
+
+    def compute_gae_seen(rewards, *rest):
+        seen.append(rewards.clone())
+        return compute_gae(rewards, *rest)
+
+    monkeypatch.setattr(rlhf, "rollout", rollout_seen)
+    monkeypatch.setattr(rlhf, "compute_gae", compute_gae_seen)
+    args = rlhf_tiny_args(tmp_path, "process", reward="process", kl_coef=0.0, response_length=20)
+    rlhf.train(rlhf.Args(**{**vars(args), "sft_checkpoint": str(run_dir / "sft.pt")}))
+    (reward_model, batch), rewards = seen[0], seen[1]
+    assert isinstance(reward_model, rlhf.ProcessRewardModel)
+    P = rlhf.PROMPT_LENGTH
+    with torch.no_grad():
+        scalars = reward_model(batch["tokens"])[1][:, P:]
+    expected = torch.zeros_like(rewards)
+    two_clauses = 0
+    for i, row in enumerate(batch["tokens"][:, P:].tolist()):
+        n = int(batch["mask"][i].sum())
+        closing = [j for j in range(n) if row[j] in (rlhf.TOKEN["and"], rlhf.EOS)]
+        if rlhf.EOS in row[:n]:
+            expected[i, closing] = scalars[i, closing]
+            two_clauses += len(closing) >= 2
+        else:
+            expected[i, n - 1] = args.no_eos_score
+    assert two_clauses > 0  # so that rewards moved to the EOS, or summed there, would fail
+    torch.testing.assert_close(rewards, expected)
+    torch.testing.assert_close(batch["scores"], torch.where(batch["has_eos"] > 0, expected.sum(1), args.no_eos_score))
+
+
+def test_the_process_rms_held_out_clause_accuracy_is_saved_and_logged(tiny_run, tmp_path):
+    """Stage 2 with --reward process saves, beside the pairwise accuracy of its summed scores, the share of the
+    held-out pairs' clauses whose score has the sign of their gold, as a loop over those clauses finds it, and the
+    labels it learned from; stage 3 logs the same share on the policy's own responses (rlhf/rm_clause_accuracy)."""
+    _, run_dir = tiny_run
+    args = rlhf_tiny_args(tmp_path, "process", reward="process")
+    rlhf.train(rlhf.Args(**{**vars(args), "sft_checkpoint": str(run_dir / "sft.pt")}))
+    saved = torch.load(tmp_path / "process" / "reward_model.pt", weights_only=True)
+    sft = rlhf.new_model(args, "cpu", torch.load(run_dir / "sft.pt", weights_only=True)["model"])
+    prm = rlhf.new_model(args, "cpu", saved["model"], kind=rlhf.ProcessRewardModel)
+    tokens, mask, chosen, rejected, n_train = rlhf.preference_pairs(sft, args, "cpu")
+    right = total = 0
+    P = rlhf.PROMPT_LENGTH
+    with torch.no_grad():
+        for row in torch.cat([chosen[n_train:], rejected[n_train:]]).tolist():
+            words = [rlhf.WORDS[t] for t in tokens[row, : P + int(mask[row].sum())].tolist()]
+            scalars = prm(tokens[row : row + 1])[1][0]
+            said, start = [" ".join(words[1 : P - 1])], P
+            for j in range(P, len(words)):
+                if words[j] in ("and", "<eos>"):
+                    clause, start = " ".join(words[start:j]), j + 1
+                    gold = rlhf.parse_review(clause + " <eos>") if clause not in said else None
+                    said.append(clause)
+                    right += (scalars[j].item() > 0) == ((gold if gold is not None else -6) > 0)
+                    total += 1
+    assert total > 10
+    assert saved["held_out_clause_accuracy"] == pytest.approx(right / total)
+    # the labels it cost: one a clause (a step closed by "and" or EOS) of the training pairs' responses
+    train = torch.cat([chosen[:n_train], rejected[:n_train]]).tolist()
+    closers = [rlhf.WORDS[t] in ("and", "<eos>") for row in train for t in tokens[row, P:][mask[row] > 0].tolist()]
+    assert saved["clause_labels"] == sum(closers) and saved["train_pairs"] == n_train
+    assert 0 <= saved["held_out_accuracy"] <= 1
+    logged = tb_scalars(tmp_path / "process")["rlhf/rm_clause_accuracy"]
+    # the results folder keeps both: the facts in the CSV's header, the accuracy per iteration in process/
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import results
+
+    csv = results.write_run(tmp_path / "results", "reviews__arm__seed1", [], results.read_run(tmp_path / "process"))
+    meta, _ = results.read_csv(csv)
+    assert float(meta["rm_held_out_clause_accuracy"]) == pytest.approx(saved["held_out_clause_accuracy"], abs=1e-4)
+    assert int(meta["rm_clause_labels"]) == sum(closers) and int(meta["rm_train_pairs"]) == n_train
+    series = results.read_series(tmp_path / "results", "process")["arm", 1]
+    np.testing.assert_allclose(series[:, 1], [value for _, value in logged], rtol=1e-5)

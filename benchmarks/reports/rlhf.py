@@ -28,8 +28,8 @@ from results import (
     RLHF_STATS,
     load_runs,
     read_best_of_n,
-    read_kto_series,
     read_rlhf_series,
+    read_series,
 )
 from suites import SUITES
 
@@ -76,7 +76,7 @@ def kto_lines(folder):
     mismatched pairs' mean implied reward that it clamps at 0, over every minibatch's mean of an iteration."""
     import numpy as np
 
-    series = read_kto_series(folder)
+    series = read_series(folder, "kto")
     if not series:
         return []
     lines = [
