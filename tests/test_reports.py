@@ -757,7 +757,9 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
     rl = {1024: (1.5, 1.0), 4096: (2.0, 1.0), 16384: (2.2, 0.9)}  # d* = e^(alpha / beta - 1): 1.65, 2.72, 4.2
     bon = {1024: (2.0, 0.5), 4096: (3.0, 0.5), 16384: (3.5, 0.5)}
     noise = np.random.default_rng(0)
-    for variant in [v for v in SUITES["rlhf-long"].variants if over.ensemble_of(v) == 1]:  # ensembles: the next test
+    for variant in [
+        v for v in SUITES["rlhf-long"].variants if over.measures.one_outcome_rm(v)
+    ]:  # ensembles, process: theirs
         # the beta-0 runs go on to d = 6; the penalized ones stop at d = 2, on the same grid of d (so that a bin of d
         # holds the same d in both, and only the noise tells them apart)
         d = np.linspace(0.05, 6.0, 400)
@@ -883,6 +885,69 @@ def test_the_overoptimization_report_sets_members_with_heads_of_their_own_agains
         f" (`ens4-mean-same-head`): the peak gain is above theirs ({gain - same_gain:+.2f} ± 0.00" in line
     )
     assert f"and its d above theirs ({d_peak - same_d:+.2f} ± 0.00" in line
+
+
+def test_the_overoptimization_report_answers_credit_assignment_and_the_fall_of_process_supervision(tmp_path):
+    """(f): each suite's process arm against its outcome arm over the first tenth of training, seed by seed (here the
+    process arm's gold is 1 higher there in every seed); (g): the process arm at beta 0 rises and falls onto spam while
+    its RM's score keeps rising, so it fell, and its peak against beta0's; and the labels from the runs' headers. The
+    process arm is not one of the single-RM runs that Gao's forms are fitted to."""
+    from reports import overoptimization as over
+
+    long, short = tmp_path / "rlhf-long", tmp_path / "rlhf"
+    rise = np.linspace(0, 1, 200)
+    falls = np.minimum(rise, 1.2 - rise)  # peaks at 0.6, ends at 0.2
+    shapes = {  # folder, variant: gold by iteration (an offset per seed), and whether spam takes over
+        (long, "beta0"): (2 + 6 * rise, False),
+        (long, "process-beta0"): (3 + 10 * falls, True),
+        (short, "beta0.05"): (2 + rise, False),
+        (short, "process"): (3 + rise, False),
+    }
+    for (folder, variant), (gold, spam) in shapes.items():
+        for seed in (1, 2, 3):
+            meta = [("rm_held_out_accuracy", "0.7" if variant.startswith("process") else "0.9")]
+            if variant.startswith("process"):
+                meta += [("rm_held_out_clause_accuracy", f"{0.8 + seed / 100}"), ("rm_clause_labels", 7000 + seed)]
+                meta += [("rm_train_pairs", 3000 + seed)]
+            steps = 102_400 if folder == long else 12_800
+            fake_run(folder, "reviews", variant, seed, 1.0, steps=steps, meta=meta)
+            rows = []
+            for i in range(200):
+                stats = {"score": rise[i], "gold_score": gold[i] + seed / 10, "kl": 1 + 20 * rise[i]}
+                stats |= {"spam": rise[i] if spam else 0.0, "garbled": 0.0}
+                rows.append([(i + 1) * steps // 200] + [stats.get(name, 0.5) for name in RLHF_STATS])
+            write_series(folder / "rlhf" / f"reviews__{variant}__seed{seed}.csv", RLHF_STATS, rows)
+            if variant == "process-beta0":
+                rows = [[(i + 1) * 512, 0.9 - 0.5 * rise[i]] for i in range(200)]
+                write_series(long / "process" / f"reviews__{variant}__seed{seed}.csv", ("rm_clause_accuracy",), rows)
+    text = report.report(long, results=tmp_path)
+    f = next(line for line in text.splitlines() if line.startswith("- **(f)"))
+    for suite, process, outcome, gold in [("rlhf", "process", "beta0.05", shapes[short, "process"][0])]:
+        first = gold[:20].mean() + 0.2  # the first tenth of 200 iterations; seeds 1-3 add 0.1-0.3, 0.2 on average
+        assert f"in `{suite}` (the first 1,280 responses), `{process}` reached gold {first:.2f} ± 0.06" in f
+        assert f"and `{outcome}` {first - 1:.2f} ± 0.06; process minus outcome, seed by seed, is above" in f
+    assert "in `rlhf-long` (the first 10,240 responses), `process-beta0`" in f
+    g = next(line for line in text.splitlines() if line.startswith("- **(g)"))
+    assert "`process-beta0` peaks at gold gain" in g and "minus the same seed's `beta0`" in g
+    for seed in (1, 2, 3):
+        assert f"seed {seed} fell: gold " in g
+    windows = (3 + 10 * falls).reshape(10, 20).mean(1)
+    peak = int(np.argmax([windows[j : j + 3].mean() for j in range(8)]))  # the 3 windows of 20 of highest gold
+
+    def at(x, start, stop):  # the mean of x over windows start to stop
+        return x[20 * start : 20 * stop].mean()
+
+    assert f"with spam {at(rise, 9, 10):.2f} and garbled 0.00 at the end" in g
+    assert f"its RM's score {at(rise, peak, peak + 3):.2f} at the peak, {at(rise, 7, 10):.2f} at the end" in g
+    clauses = 0.9 - 0.5 * rise
+    assert f"it rated {at(clauses, peak, peak + 3):.0%} of the policy's clauses as gold does at the peak," in g
+    assert f" {at(clauses, 7, 10):.0%} at the end." in g
+    labels = next(line for line in text.splitlines() if line.startswith("- **The labels each cost.**"))
+    assert "7,002 ± 1" in labels and "6,002–6,006 responses of the 3,001–3,003 pairs" in labels
+    assert "0.82 ± 0.01" in labels and "not at equal labelling effort" in labels
+    fits = next(line for line in text.splitlines() if line.startswith("| 4,096 | "))
+    assert fits.startswith("| 4,096 | 0.90 ± 0.00 |")  # the single outcome RMs' accuracy alone, not the process RMs'
+    assert over.measures.one_outcome_rm("beta0") and not over.measures.one_outcome_rm("process-beta0")
 
 
 def test_the_fits_of_a_reward_model_size_give_the_held_out_accuracy_of_the_single_reward_models_fitted(tmp_path):

@@ -5,7 +5,8 @@ it was built to answer, answered from those numbers: (a) does a weaker RM peak e
 with a KL penalty lie on the unpenalized run's curve, stopping earlier, (c) does PPO fall below best-of-N at equal d,
 (d) does an ensemble of reward models peak later or higher than one, and (e) when the policy falls, do all members
 overrate what it writes (herding), or does their disagreement rise first. The figure has a panel each for the KL
-penalty, the group baselines, DPO, IPO and KTO (the rlhf suite's arms), the RM size and the ensembles. Peaks and falls
+penalty, the group baselines, DPO, IPO and KTO (the rlhf suite's arms), the RM size, the ensembles and process
+supervision, whose (f) credit assignment and (g) over-optimization the report answers too. Peaks and falls
 are read by reports/rlhf_series.py's rule, and the report says which verdicts it changed from the previous rule. What
 it measures, its claims, its figure and its account of the change are the modules overoptimization_*.py."""
 
@@ -39,6 +40,7 @@ from reports.overoptimization_measures import (  # the names the report and its 
     per_seed,
     rm_pairs,
 )
+from reports.overoptimization_process import process_claims
 from reports.rlhf_series import MIN_FALL, SMOOTH, Z, plot_rlhf_seeds, tenths
 from results import load_runs, read_ensemble_series, read_rlhf_series
 from suites import SUITES
@@ -82,6 +84,7 @@ def summary_lines(folder, results):
         f" gold point, the KL and the RM score not fallen past {Z:g} of theirs): {', '.join(counts)}."
     )
     claimed = claims(series, sft_of, fits, sizes, best) + ensemble_claims(series, sft_of, read_ensemble_series(folder))
+    claimed += process_claims(folder, series, sft_of, results)
     return lines + [f"  {line}" for line in claimed]
 
 
@@ -167,7 +170,9 @@ def write_report(folder, runs, reference, results):
     ]
     g0 = {seed: value for (_, seed), value in sft_of.items()}
     for pairs in sizes:
-        accuracy = [held_out[k] for k in held_out if rm_pairs(k[0]) == pairs and ensemble_of(k[0]) == 1]  # one RM's
+        accuracy = [
+            held_out[k] for k in held_out if rm_pairs(k[0]) == pairs and measures.one_outcome_rm(k[0])
+        ]  # one RM's
         for form in FORMS:
             rows = {seed: v for (f, p, seed), v in sorted(fits.items()) if f == form and p == pairs}
             if rows:
@@ -179,6 +184,7 @@ def write_report(folder, runs, reference, results):
     lines += claims(series, sft_of, fits, sizes, best)
     ensemble = read_ensemble_series(folder)
     lines += ensemble_claims(series, sft_of, ensemble)
+    lines += process_claims(folder, series, sft_of, results)
     lines += ["", *change_lines(series, sft_of, fits, sizes, best, ensemble)]
     lines += [
         "",

@@ -21,6 +21,7 @@ from reports.overoptimization_measures import (
     end_span,
     ensemble_of,
     fell_of,
+    one_outcome_rm,
     over,
     peak_of,
     peak_span,
@@ -61,7 +62,7 @@ def claims(series, sft_of, fits, sizes, best, rule=CURRENT):
     parts = []
     by_size = {}
     for pairs in sizes:
-        keys = [k for k in series if rm_pairs(k[0]) == pairs and beta_of(k[0]) == 0 and ensemble_of(k[0]) == 1]
+        keys = [k for k in series if rm_pairs(k[0]) == pairs and beta_of(k[0]) == 0 and one_outcome_rm(k[0])]
         peaks = [peak_of(series[k], sft_of[k], rule) for k in keys]
         by_size[pairs] = peaks
         rl = [v for (f, p, _), v in sorted(fits.items()) if f == "rl" and p == pairs]
@@ -102,7 +103,7 @@ def claims(series, sft_of, fits, sizes, best, rule=CURRENT):
     rows = []
     for pairs in sizes:
         for beta in sorted({beta_of(k[0]) for k in series if rm_pairs(k[0]) == pairs}):
-            keys = [k for k in series if (rm_pairs(k[0]), beta_of(k[0]), ensemble_of(k[0])) == (pairs, beta, 1)]
+            keys = [k for k in series if (rm_pairs(k[0]), beta_of(k[0])) == (pairs, beta) and one_outcome_rm(k[0])]
             keys = [k for k in keys if ("bon", pairs, k[1]) in fits]
             if not keys:
                 continue

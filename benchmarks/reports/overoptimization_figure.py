@@ -17,6 +17,7 @@ from reports.overoptimization_measures import (
     curve,
     end,
     ensemble_of,
+    one_outcome_rm,
     points,
     rm_pairs,
 )
@@ -38,8 +39,9 @@ def arm_curve(runs):
 
 
 def plot_panels(folder, series, sft_of, fits, best, results):
-    """<folder>/curves/panels.png: gold against d in four panels (the KL penalty, the group baselines, DPO, the RM
-    size), with best-of-N and Gao's fitted forms in each, and the legends under the panels."""
+    """<folder>/curves/panels.png: gold against d in a panel each for the KL penalty, the group baselines, DPO, IPO and
+    KTO, the RM size, the ensembles and process supervision, with best-of-N and Gao's fitted forms in each, and the
+    legends under the panels."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -68,12 +70,13 @@ def plot_panels(folder, series, sft_of, fits, best, results):
         ("DPO, IPO and KTO (no reward model)", arms(["dpo0.1", "dpo0.5", "ipo0.1", "kto0.1", "kto0.1-tenth"], short)),
         (
             "reward model size (β = 0)",
-            arms([v for v in SUITES[SUITE].variants if beta_of(v) == 0 and ensemble_of(v) == 1], series),
+            arms([v for v in SUITES[SUITE].variants if beta_of(v) == 0 and one_outcome_rm(v)], series),
         ),
         (
             f"reward-model ensembles (β = 0, {DEFAULT_PAIRS:,} pairs)",
             arms(["beta0", *(v for v in SUITES[SUITE].variants if ensemble_of(v) > 1)], series),
         ),
+        ("process supervision", arms(["beta0", "process-beta0"], series) + arms(["beta0.05", "process"], short)),
     ]
     panels = [(title, members) for title, members in panels if members or title.startswith("KL")]
     fig, axes = plt.subplots((len(panels) + 1) // 2, 2, figsize=(11, 5.5 * ((len(panels) + 1) // 2)), sharey=True)

@@ -35,6 +35,17 @@ def ensemble_of(variant, suite=SUITE):
     return int(flags[flags.index("--rm-ensemble") + 1]) if "--rm-ensemble" in flags else 1
 
 
+def reward_of(variant, suite=SUITE):
+    """A variant's kind of reward model: "process" with --reward process, else "outcome"."""
+    flags = SUITES[suite].variants[variant][1]
+    return flags[flags.index("--reward") + 1] if "--reward" in flags else "outcome"
+
+
+def one_outcome_rm(variant, suite=SUITE):
+    """Whether a variant learns from one outcome reward model: no ensemble, no process supervision."""
+    return ensemble_of(variant, suite) == 1 and reward_of(variant, suite) == "outcome"
+
+
 def best_of_n_folder(results, pairs):
     """Where best_of_n.py's CSVs for reward models of `pairs` pairs are: the rlhf suite's own for the default size."""
     return Path(results) / "rlhf" if pairs == DEFAULT_PAIRS else Path(results) / SUITE / f"rm{pairs}"
@@ -169,7 +180,7 @@ def measure(folder, runs, results):
             d, gain = bon_points(table)
             fits["bon", pairs, seed] = (*fit_gao(d, gain, "bon"), float(d.max()))
         for (variant, seed), run in series.items():
-            if rm_pairs(variant) == pairs and beta_of(variant) == 0 and ensemble_of(variant) == 1:
+            if rm_pairs(variant) == pairs and beta_of(variant) == 0 and one_outcome_rm(variant):
                 d, gain = points(run, sft_of[variant, seed])
                 fits["rl", pairs, seed] = (*fit_gao(d, gain, "rl"), float(d.max()))
     return series, variants, held_out, sizes, best, sft_of, fits
@@ -188,4 +199,4 @@ def beta_of(variant, suite=SUITE):
 def single_rm_run(series, seed, pairs):
     """The key of the seed's β = 0 run with one reward model of `pairs` pairs, or None."""
     keys = [k for k in series if k[1] == seed and beta_of(k[0]) == 0 and rm_pairs(k[0]) == pairs]
-    return next((k for k in keys if ensemble_of(k[0]) == 1), None)
+    return next((k for k in keys if one_outcome_rm(k[0])), None)
