@@ -11,8 +11,9 @@ so any arm with the same reward model serves) and writes benchmarks/results/rlhf
 model of another --rm-pairs P than the default, benchmarks/results/rlhf-long/rm<P>/best_of_n/seed<N>.csv). An
 ensemble arm's reward_model.pt holds its K members: they are loaded as the run loaded them, and the kept response is
 the one their aggregate (the run's --rm-ensemble-agg, mean, min or uwo) scores highest, written to
-benchmarks/results/rlhf-long/rm<P>-ens<K>-<agg>/best_of_n/seed<N>.csv, beside the single RM's, never over it. The CSV
-holds N, the analytic KL, and the mean RM score, gold
+benchmarks/results/rlhf-long/rm<P>-ens<K>-<agg>/best_of_n/seed<N>.csv, beside the single RM's, never over it. A process
+reward model (--reward process) scores a response by the sum of its clauses' scores, as its run did, and writes to
+benchmarks/results/rlhf-long/rm<P>-process/best_of_n/. The CSV holds N, the analytic KL, and the mean RM score, gold
 score and shares of well-formed, spam and garbled text of the kept responses, and how often the RM ranks pairs of them
 (to one prompt, of different gold) as gold does; after '# key: value' lines that say where and how it was made.
 """
@@ -63,7 +64,8 @@ def best_of_n(run_dir, prompts=256, ns=NS, seed=0):
     sft = rlhf.new_model(args, "cpu", checkpoint["model"])
     # the reward model's own Args: an ensemble's K members and their aggregate are there, not in sft.pt's
     rm_checkpoint, rm_args = rlhf.load_checkpoint(str(Path(run_dir) / "reward_model.pt"), args, "reward_model")
-    reward_model = rlhf.new_model(rm_args, "cpu", rm_checkpoint["model"], rm_args.rm_ensemble)
+    kind = rlhf.ProcessRewardModel if rm_args.reward == "process" else rlhf.TinyLM  # a process RM: its clauses' sum
+    reward_model = rlhf.new_model(rm_args, "cpu", rm_checkpoint["model"], rm_args.rm_ensemble, kind)
     torch.manual_seed(seed)
     tokens, mask = rlhf.generate(sft, prompts, args.response_length, args.temperature, max(ns))
     with torch.no_grad():
@@ -82,8 +84,10 @@ def best_of_n(run_dir, prompts=256, ns=NS, seed=0):
 
 def default_out(results, rm_args):
     """Where best-of-N of a reward model with these Args goes: the folder of its --rm-pairs for one reward model, and
-    for an ensemble one of its own, named by its pairs, members and aggregate, so that it never overwrites the single
-    reward model's curve that the reports read."""
+    for an ensemble or a process RM one of its own, named by its pairs and its members and aggregate or "process", so
+    that it never overwrites the single reward model's curve that the reports read."""
+    if rm_args.reward == "process":
+        return Path(results) / SUITE / f"rm{rm_args.rm_pairs}-process" / "best_of_n"
     if rm_args.rm_ensemble == 1:
         return best_of_n_folder(results, rm_args.rm_pairs) / "best_of_n"
     name = f"rm{rm_args.rm_pairs}-ens{rm_args.rm_ensemble}-{rm_args.rm_ensemble_agg}"

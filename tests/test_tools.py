@@ -173,3 +173,36 @@ def test_best_of_n_scores_an_ensemble_arm_with_its_aggregate(tmp_path):
     assert best_of_n.default_out(results, args) == results / "rlhf" / "best_of_n"
     min_args = rlhf.Args(**{**vars(args), "rm_ensemble": 2, "rm_ensemble_agg": "min"})
     assert best_of_n.default_out(results, min_args) == results / "rlhf-long" / "rm4096-ens2-min" / "best_of_n"
+
+
+def test_best_of_n_scores_a_process_rm_by_the_sum_of_its_clauses(tmp_path):
+    """A process RM's reward_model.pt: best_of_n.py reads it as its run did, each response's score the sum of the
+    network's scalars at the response's "and" and EOS tokens (computed here by hand), not its scalar at the EOS alone;
+    and its CSV goes to a folder of its own."""
+    import best_of_n
+
+    rlhf = load_script("ppo_rlhf.py")
+    args = rlhf.Args(d_model=16, n_layer=1, n_head=2, response_length=16, seed=1, reward="process")
+    torch.manual_seed(0)
+    sft, prm = rlhf.new_model(args, "cpu"), rlhf.new_model(args, "cpu")
+    torch.nn.init.normal_(prm.score_head.weight)
+    rlhf.save_checkpoint(str(tmp_path / "sft.pt"), "sft", args, model=sft.state_dict())
+    rlhf.save_checkpoint(str(tmp_path / "reward_model.pt"), "reward_model", args, model=prm.state_dict())
+    rows = best_of_n.best_of_n(tmp_path, prompts=8, ns=[1, 4])
+    torch.manual_seed(0)  # best_of_n's draw
+    tokens, mask = rlhf.generate(sft, 8, args.response_length, args.temperature, 4)
+    P = rlhf.PROMPT_LENGTH
+    with torch.no_grad():
+        scalars = prm(tokens)[1][:, P:]
+    by_hand = []
+    for i, row in enumerate(tokens[:, P:].tolist()):
+        n = int(mask[i].sum())
+        if rlhf.EOS not in row[:n]:
+            by_hand.append(args.no_eos_score)
+        else:
+            by_hand.append(sum(scalars[i, j].item() for j in range(n) if row[j] in (rlhf.TOKEN["and"], rlhf.EOS)))
+    by_hand = torch.tensor(by_hand).view(8, 4)
+    assert rows[0][2] == pytest.approx(by_hand[:, 0].mean().item(), abs=1e-5)
+    assert rows[1][2] == pytest.approx(by_hand.max(1).values.mean().item(), abs=1e-5)
+    results = tmp_path / "results"
+    assert best_of_n.default_out(results, args) == results / "rlhf-long" / "rm4096-process" / "best_of_n"
