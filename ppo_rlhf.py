@@ -412,8 +412,9 @@ def preference_pairs(sft, args, device):
 
 def train_reward_model(args, sft, run_dir, device, stop):
     """Stage 2: a reward model, pi_SFT with its scalar head read at the EOS, fitted to pairs of pi_SFT's responses
-    ranked by the gold reward. It only ever sees pi_SFT's text: what it says of any other text is a guess."""
-    kind = ProcessRewardModel if args.reward == "process" else TinyLM  # the same responses, labelled per clause
+    ranked by the gold reward; or a process RM, fitted to each clause's gold on the same responses. It only ever sees
+    pi_SFT's text: what it says of any other text is a guess."""
+    kind = ProcessRewardModel if args.reward == "process" else TinyLM
     if args.reward_model_checkpoint:
         state = load_checkpoint(args.reward_model_checkpoint, args, "reward_model")[0]["model"]
         return new_model(args, device, state, args.rm_ensemble, kind)
