@@ -454,7 +454,8 @@ def train_reward_model(args, sft, run_dir, device, stop):
     state = {"model": reward_model.state_dict(), "held_out_accuracy": accuracy}
     if kind is ProcessRewardModel:  # and how often it rates a held-out clause good or bad as gold does
         held_out = torch.cat([chosen[n_train:], rejected[n_train:]])
-        right, closes = clause_right(reward_model, tokens[held_out], mask[held_out])
+        scores = reward_model.clause_scores(tokens[held_out], mask[held_out])
+        right, closes = clause_right(scores, tokens[held_out], mask[held_out])
         state["held_out_clause_accuracy"] = (right.sum() / closes.sum()).item()
         train = torch.cat([chosen[:n_train], rejected[:n_train]])  # the labels it cost, beside the pairs compared
         state |= {"clause_labels": int(ends[train].sum()), "train_pairs": n_train}
@@ -463,11 +464,11 @@ def train_reward_model(args, sft, run_dir, device, stop):
     return reward_model
 
 
-def clause_right(reward_model, tokens, mask):
-    """Where a process RM rates a clause good or bad (its score's sign) as gold does: 1 at those closing tokens [B, L];
-    and the closing tokens."""
+def clause_right(clause_scores, tokens, mask):
+    """Where a process RM's clause_scores rate a clause good or bad (by their sign) as gold does: 1 at those closing
+    tokens [B, L]; and the closing tokens."""
     labels, ends = clause_golds(tokens, mask)
-    return (reward_model.clause_scores(tokens, mask).sign() == labels.sign()) * ends, ends
+    return (clause_scores.sign() == labels.sign()) * ends, ends
 
 
 @torch.no_grad()
@@ -488,8 +489,9 @@ def rollout(agent, reference, reward_model, args):
     batch |= {"ref_logprobs": ref_logprobs, "values": values[:, PROMPT_LENGTH - 1 : -1] * mask, "scores": scores}
     if isinstance(reward_model, ProcessRewardModel):  # each clause's score at its token; no EOS: the penalty at the end
         last = F.one_hot(mask.sum(1).long() - 1, mask.shape[1]) * args.no_eos_score
-        batch["clause_scores"] = torch.where(has_eos[:, None], reward_model.clause_scores(tokens, mask), last)
-        batch["clause_right"], batch["clause_ends"] = clause_right(reward_model, tokens, mask)
+        clause_scores = reward_model.clause_scores(tokens, mask)
+        batch["clause_scores"] = torch.where(has_eos[:, None], clause_scores, last)
+        batch["clause_right"], batch["clause_ends"] = clause_right(clause_scores, tokens, mask)
     if isinstance(reward_model, Ensemble):  # each member's score [B, K]: do they agree on what pi writes?
         batch["rm_members"] = reward_model.score(tokens, mask, members=True).T
     return batch | forms | {"gold": gold, "has_eos": has_eos.float(), "entropy": dist.entropy()}
