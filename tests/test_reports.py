@@ -930,7 +930,7 @@ def test_the_overoptimization_report_answers_credit_assignment_and_the_fall_of_p
     g = next(line for line in text.splitlines() if line.startswith("- **(g)"))
     assert "`process-beta0` peaks at gold gain" in g and "minus the same seed's `beta0`" in g
     for seed in (1, 2, 3):
-        assert f"seed {seed} fell: gold " in g
+        assert f"seed {seed} fell (rose yes, fell yes, kl held yes, score held yes): gold " in g
     windows = (3 + 10 * falls).reshape(10, 20).mean(1)
     peak = int(np.argmax([windows[j : j + 3].mean() for j in range(8)]))  # the 3 windows of 20 of highest gold
 

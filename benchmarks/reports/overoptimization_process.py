@@ -20,7 +20,7 @@ from reports.overoptimization_measures import (
     peak_of,
     peak_span,
 )
-from reports.rlhf_series import tenths, window_means
+from reports.rlhf_series import judge, tenths, verdict_of, window_means
 from reports.stats import mean_std
 from results import PROCESS_STATS, load_runs, read_rlhf_series, read_series
 from suites import SUITES
@@ -95,8 +95,11 @@ def overoptimization_lines(folder, series, sft_of):
         gold = tenths(run, "gold_score", width=WINDOW)
         peak, tail = peak_span(run), end_span(len(gold))
         score = tenths(run, "score", width=WINDOW)
+        conditions = verdict_of(judge(run, WINDOW))[1]  # the rule's conditions, each met or not
         row = (
-            f"seed {key[1]} {'fell' if key in fell else 'did not fall'}: gold {over(gold, peak):.1f} at the peak,"
+            f"seed {key[1]} {'fell' if key in fell else 'did not fall'} ("
+            + ", ".join(f"{name} {'yes' if met else 'no'}" for name, met in conditions.items())
+            + f"): gold {gold[0]:.1f} in the first window, {over(gold, peak):.1f} at the peak,"
             f" {over(gold, tail):.1f} at the end, with spam {end(run, 'spam'):.2f} and garbled"
             f" {end(run, 'garbled'):.2f} at the end; its RM's score {over(score, peak):.2f} at the peak,"
             f" {over(score, tail):.2f} at the end"

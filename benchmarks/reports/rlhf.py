@@ -149,12 +149,14 @@ def rlhf_report(folder, runs):
         "|---" * 10 + "|",
     ]
     fell = falls(series, direct_variants())
-    held_out = {r.seed: float(r.meta["rm_held_out_accuracy"]) for r in runs if "rm_held_out_accuracy" in r.meta}
+    held_out = {
+        (r.variant, r.seed): float(r.meta["rm_held_out_accuracy"]) for r in runs if "rm_held_out_accuracy" in r.meta
+    }
     for variant in variants:
         for seed in sorted(seed for v, seed in series if v == variant):
             run = series[(variant, seed)]
             cells = [f"{tenths(run, name)[-1]:.2f}" for name in ("score", "gold_score", "kl")]
-            cells.append(f"{held_out[seed]:.2f}" if seed in held_out else "–")
+            cells.append(f"{held_out[variant, seed]:.2f}" if (variant, seed) in held_out else "–")
             pairs, accuracy = run[-1, 1 + RLHF_STATS.index("rm_pairs")], tenths(run, "rm_accuracy")[-1]
             cells.append(f"{accuracy:.2f} ({pairs:,.0f})" if pairs == pairs else "–")
             cells += [f"{tenths(run, name)[-1]:.2f}" for name in ("spam", "garbled")]
@@ -246,8 +248,10 @@ def rlhf_block(results=RESULTS):
             f" three stages, with {where_run(default_runs)} ({len(minutes)} run{'s' if len(minutes) > 1 else ''};"
             " other work may have shared it)."
         )
-    # Stages 1 and 2 depend only on the seed: one reward model a seed, whichever setting ran it.
-    held_out = {r.seed: float(r.meta["rm_held_out_accuracy"]) for r in runs if "rm_held_out_accuracy" in r.meta}
+    # Stages 1 and 2 depend only on the seed: one outcome reward model a seed, whichever setting ran it (a process RM,
+    # --reward process, is another network, and the report's table has its own row)
+    outcome = [r for r in runs if "rm_held_out_accuracy" in r.meta and "rm_held_out_clause_accuracy" not in r.meta]
+    held_out = {r.seed: float(r.meta["rm_held_out_accuracy"]) for r in outcome}
     if held_out:
         lines.append(
             f"- **The reward model** ranked {fmt(*mean_std(list(held_out.values())))} of held-out pairs of π_SFT's"
