@@ -441,8 +441,10 @@ def train_reward_model(args, sft, run_dir, device, stop):
             return preference_loss(r_w, reward_model.score(tokens[rejected[mb_inds]], mask[rejected[mb_inds]]))
 
         fit(reward_model, loss_fn, steps, args.rm_learning_rate, "2, reward model", stop, saved)
-        with torch.no_grad():  # normalize the score to std 1 on pi_SFT's responses, and mean 0 but per clause (that
-            scores = reward_model.score(tokens, mask)  # shift would pay for each clause), through the scalar head
+        # Normalize the score, through the scalar head, to std 1 on pi_SFT's responses and to mean 0; but a process RM
+        # is not shifted: a shift would add the same to every clause, and pay for writing more of them.
+        with torch.no_grad():
+            scores = reward_model.score(tokens, mask)
             reward_model.score_head.weight.div_(scores.std())
             reward_model.score_head.bias.sub_(0 if kind is ProcessRewardModel else scores.mean()).div_(scores.std())
         members.append(reward_model)
