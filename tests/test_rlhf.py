@@ -737,25 +737,25 @@ def test_every_member_of_an_ensemble_has_its_own_data_order_and_head(tiny_run, t
                 assert torch.equal(heads[a], heads[b]) != own_heads, (a, b)
 
 
+def watch(monkeypatch, seen, name, record):
+    """Replace rlhf.<name> by itself, appending record(its positional arguments, its result) to `seen` at each call."""
+    original = getattr(rlhf, name)
+
+    def watched(*call):
+        result = original(*call)
+        seen.append(record(call, result))
+        return result
+
+    monkeypatch.setattr(rlhf, name, watched)
+
+
 def test_each_ensemble_aggregate_is_the_reward_ppo_learns_from(tiny_run, tmp_path, monkeypatch):
     """--rm-ensemble 3: the scores that compute_rewards turns into PPO's rewards are the members' mean, minimum, or
     mean - lambda x variance (over members, K - 1 in the denominator), computed here from each member's own score."""
     _, run_dir = tiny_run
     seen = []
-    rollout = rlhf.rollout
-    compute_rewards = rlhf.compute_rewards
-
-    def rollout_seen(agent, reference, reward_model, args):
-        batch = rollout(agent, reference, reward_model, args)
-        seen.append((reward_model, batch))
-        return batch
-
-    def compute_rewards_seen(scores, *rest):
-        seen.append(scores)
-        return compute_rewards(scores, *rest)
-
-    monkeypatch.setattr(rlhf, "rollout", rollout_seen)
-    monkeypatch.setattr(rlhf, "compute_rewards", compute_rewards_seen)
+    watch(monkeypatch, seen, "rollout", lambda call, batch: (call[2], batch))  # (the reward model, the batch)
+    watch(monkeypatch, seen, "compute_rewards", lambda call, rewards: call[0])  # the scores
     for aggregate in ("mean", "min", "uwo"):
         seen.clear()
         args = rlhf_tiny_args(tmp_path, aggregate, rm_ensemble=3, rm_ensemble_agg=aggregate, uwo_coef=0.7)
@@ -870,20 +870,8 @@ def test_process_rewards_sit_at_the_clause_closing_tokens_not_summed_at_the_eos(
     Moved to the EOS, or summed into one, they would differ wherever a response has two clauses or more."""
     _, run_dir = tiny_run
     seen = []
-    compute_gae = rlhf.compute_gae
-    rollout = rlhf.rollout
-
-    def rollout_seen(agent, reference, reward_model, args):
-        batch = rollout(agent, reference, reward_model, args)
-        seen.append((reward_model, batch))
-        return batch
-
-    def compute_gae_seen(rewards, *rest):
-        seen.append(rewards.clone())
-        return compute_gae(rewards, *rest)
-
-    monkeypatch.setattr(rlhf, "rollout", rollout_seen)
-    monkeypatch.setattr(rlhf, "compute_gae", compute_gae_seen)
+    watch(monkeypatch, seen, "rollout", lambda call, batch: (call[2], batch))  # (the reward model, the batch)
+    watch(monkeypatch, seen, "compute_gae", lambda call, advantages: call[0].clone())  # the rewards GAE reads
     args = rlhf_tiny_args(tmp_path, "process", reward="process", kl_coef=0.0, response_length=20)
     rlhf.train(rlhf.Args(**{**vars(args), "sft_checkpoint": str(run_dir / "sft.pt")}))
     (reward_model, batch), rewards = seen[0], seen[1]
