@@ -485,15 +485,17 @@ def rollout(agent, reference, reward_model, args):
     dist = response_dist(logits, args.temperature)
     ref_logprobs = response_dist(reference(tokens)[0], args.temperature).log_prob(responses)
     has_eos = (responses == EOS).any(1)
-    scores = torch.where(has_eos, reward_model.score(tokens, mask), args.no_eos_score)
-    gold, forms = gold_scores(tokens, mask)
     batch = {"tokens": tokens, "responses": responses, "mask": mask, "logprobs": dist.log_prob(responses)}
-    batch |= {"ref_logprobs": ref_logprobs, "values": values[:, PROMPT_LENGTH - 1 : -1] * mask, "scores": scores}
     if isinstance(reward_model, ProcessRewardModel):  # each clause's score at its token; no EOS: the penalty at the end
         last = F.one_hot(mask.sum(1).long() - 1, mask.shape[1]) * args.no_eos_score
         clause_scores = reward_model.clause_scores(tokens, mask)
         batch["clause_scores"] = torch.where(has_eos[:, None], clause_scores, last)
         batch["clause_right"], batch["clause_ends"] = clause_right(clause_scores, tokens, mask)
+        scores = batch["clause_scores"].sum(1)  # a response's score, as ProcessRewardModel.score, from the same read
+    else:
+        scores = torch.where(has_eos, reward_model.score(tokens, mask), args.no_eos_score)
+    gold, forms = gold_scores(tokens, mask)
+    batch |= {"ref_logprobs": ref_logprobs, "values": values[:, PROMPT_LENGTH - 1 : -1] * mask, "scores": scores}
     if isinstance(reward_model, Ensemble):  # each member's score [B, K]: do they agree on what pi writes?
         batch["rm_members"] = reward_model.score(tokens, mask, members=True).T
     return batch | forms | {"gold": gold, "has_eos": has_eos.float(), "entropy": dist.entropy()}

@@ -191,7 +191,7 @@ def test_the_weight_can_fail():
 REACHED = {
     # and its redesign for reading: PPO's path first, each successor a function found by name, the logging in a class
     # under MACHINERY, and the traps of a pasted copy removed as in the gym scripts (59 lines)
-    ("ppo_rlhf.py", "lines"): 994,  # DPO (issue 47), the hack's metrics; run dirs (55); IPO, one-prompt pairs (54);
+    ("ppo_rlhf.py", "lines"): 996,  # DPO (issue 47), the hack's metrics; run dirs (55); IPO, one-prompt pairs (54);
     # KTO and reward-model ensembles (issue 60, whose budget was 815); KTO's KL batch built from each minibatch, z0
     # logged, and the members' own heads with --rm-same-head, the ablation that reproduces the earlier runs (16);
     # process supervision (69, whose budget was 40): its labels, its reward model, its rewards at the clauses' ends,
