@@ -1,7 +1,8 @@
 """What the roboschool suite's trained policies do, in units a reader knows: flags reached per episode, speed toward the
 flag, and, for FlagrunHarder, falls, the cube's knock-downs, and the share of times and the steps it takes to get up.
 
-    python benchmarks/roboschool_measures.py                            # each run of the suite at its 50M budget
+    python benchmarks/roboschool_measures.py                            # each run of the suite at its budget
+    python benchmarks/roboschool_measures.py --suite roboschool-body    # Roboschool's body, at 100M and at 50M
     python benchmarks/roboschool_measures.py --total-timesteps 10027008 # the 10M pilots and seeds
     python benchmarks/roboschool_measures.py --checkpoint runs/x/checkpoint.pt   # any run's, printed only
     python benchmarks/roboschool_measures.py --total-timesteps 10027008 --film  # and film each run
@@ -13,8 +14,10 @@ event (the middle of the episode if none), with the flag and the cube in sight o
 
 Each run's checkpoint plays --episodes episodes (seeds 1, 2, ...) with its deterministic policy (the Gaussian's mean,
 as --eval-checkpoint plays it), and one row an episode goes to results/<suite folder>/measures/<run>.csv, which the
-suite's report reads. The body is down while its torso is below 0.8 m, FlagrunHarder's rule for "on the ground"; a fall
-is a step from up to down, a knock-down a fall within 30 steps of a cube's throw, and a get-up a step from down to up.
+suite's report reads. A checkpoint that run.py kept midway through a long run (checkpoint_50M.pt, the first saved at
+or past the mark) plays the same episodes into measures/50M/<run>.csv. The body is down while its torso is below
+0.8 m, FlagrunHarder's rule for "on the ground"; a fall is a step from up to down, a knock-down a fall within 30 steps
+of a cube's throw, and a get-up a step from down to up.
 """
 
 from __future__ import annotations
@@ -34,11 +37,11 @@ from roboschool_humanoid import DT  # noqa: E402  (seconds a step)
 from run import make_grid  # noqa: E402
 
 DOWN = 0.8  # m: FlagrunHarder's "on the ground"
-FIELDS = "seed return length flags speed_to_flag started_down falls knockdowns cubes getups getup_steps".split()
+FIELDS = "seed return length flags speed_to_flag started_down falls knockdowns cubes getups getup_steps step".split()
 
 
 def policy(checkpoint_path):
-    """(env_id, act(obs)): the checkpoint's env and its deterministic policy on raw observations."""
+    """(env_id, act(obs), step): the checkpoint's env, its deterministic policy on raw observations, and its step."""
     import gymnasium as gym
     import torch
 
@@ -54,20 +57,20 @@ def policy(checkpoint_path):
             action = agent.actor_mean(torch.as_tensor(agent.normalize_obs(obs[None])))[0].numpy()
         return np.clip(action, -1.0, 1.0)
 
-    return train_args.env_id, act
+    return train_args.env_id, act, checkpoint["global_step"]
 
 
 def play(checkpoint_path, episodes):
     """One dict of FIELDS an episode of the checkpoint's deterministic policy, on its own env, seeds 1..episodes."""
     import gymnasium as gym
 
-    env_id, act = policy(checkpoint_path)
+    env_id, act, checkpoint_step = policy(checkpoint_path)
     env = gym.make(env_id)
     rows = []
     for seed in range(1, episodes + 1):
         obs, _ = env.reset(seed=seed)
         row = dict.fromkeys(FIELDS, 0)
-        row["seed"] = seed
+        row["seed"], row["step"] = seed, checkpoint_step
         row["started_down"] = int(obs[0] + 0.8 < DOWN)  # the state's first number: the torso's height above 0.8 m
         down_since = 0 if row["started_down"] else None
         last_throw = -1000
@@ -153,7 +156,7 @@ def film(checkpoint_path, rows, video):
     import imageio.v3 as iio
 
     os.environ.setdefault("MUJOCO_GL", "egl")
-    env_id, act = policy(checkpoint_path)
+    env_id, act, _ = policy(checkpoint_path)
     harder = env_id.endswith("HumanoidFlagrunHarder-v0")
     shows = [r for r in rows if (r["getups"] > r["started_down"] if harder else r["flags"] > 0)]
     seed = (shows or rows)[0]["seed"]
@@ -230,6 +233,11 @@ def main():
         return
     for job in make_grid(args.suite, total_timesteps=args.total_timesteps):
         if job.checkpoint.exists() and job.csv.exists():
+            for kept in sorted(job.run_dir.glob("checkpoint_*.pt")):  # those run.py kept midway: measures/<label>/
+                rows = play(kept, args.episodes)
+                label = kept.stem.removeprefix("checkpoint_")
+                write(job.results_dir / "measures" / label / f"{job.name}.csv", rows)
+                print(f"{job.name} at {label}: {summary(rows)}", flush=True)
             rows = play(job.checkpoint, args.episodes)
             write(job.results_dir / "measures" / f"{job.name}.csv", rows)
             print(f"{job.name}: {summary(rows)}", flush=True)

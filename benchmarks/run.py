@@ -22,6 +22,7 @@ not run twice: its CSV is copied (table1's clip0.2 row is the mujoco suite).
 from __future__ import annotations
 
 import argparse
+import io
 import os
 import re
 import shlex
@@ -170,9 +171,8 @@ def check_grid(jobs):
             continue
         seen.add(key)
         module = load_script(job.script)
-        argv = job.command()[
-            len(job.launcher) + 1 : -2
-        ]  # without --run-dir: a run's folder is the runner's, which resumes what it holds
+        # Without --run-dir: a run's folder is the runner's, which resumes what it holds.
+        argv = job.command()[len(job.launcher) + 1 : -2]
         try:
             args = tyro.cli(module.Args, args=argv, console_outputs=False)
         except SystemExit:
@@ -316,6 +316,22 @@ def start_process(cmd, root, log, run_dir):
     return proc
 
 
+def keep_checkpoints(job, seen):
+    """Copy aside, as checkpoint_<label>.pt, the first checkpoint a run saves at or past each mark of its suite's
+    keep_checkpoints, so that a long run's policy midway can be measured later. `seen`: each save is read once."""
+    marks = {job.run_dir / f"checkpoint_{k}.pt": v for k, v in SUITES[job.suite].keep_checkpoints.items()}
+    todo = {path: mark for path, mark in marks.items() if not path.exists()}
+    mtime = job.checkpoint.stat().st_mtime_ns if todo and job.checkpoint.exists() else None
+    if mtime is not None and seen.get(job.name) != mtime:
+        import torch
+
+        seen[job.name], data = mtime, job.checkpoint.read_bytes()  # one read: the script replaces the file atomically
+        step = torch.load(io.BytesIO(data), weights_only=True)["global_step"]
+        for path in [path for path, mark in todo.items() if step >= mark]:
+            path.with_suffix(".tmp").write_bytes(data)
+            os.replace(path.with_suffix(".tmp"), path)
+
+
 def launch_local(job, cmd, log):
     """Start a run as a subprocess of this runner."""
     return start_process(cmd, ROOT, log, job.run_dir)
@@ -410,7 +426,7 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
 
     running, failed = {}, 0
     start = time.time()
-    steps_at_start = {}
+    steps_at_start, seen = {}, {}
     signals = []  # the handler only notes the signal; the loop below stops the runs, once
     previous = {
         sig: signal.signal(sig, lambda signum, frame: signals.append(signum)) for sig in (signal.SIGTERM, signal.SIGINT)
@@ -462,6 +478,8 @@ def run_grid(jobs, workers, save_every=None, status_every=60.0, results_root=Non
                     flush=True,
                 )
             time.sleep(0.2)
+            for job, *_ in running.values():
+                keep_checkpoints(job, seen)
             for proc in [p for p in running if p.poll() is not None]:
                 job, started, commit, resumed, log = running.pop(proc)
                 log.close()
@@ -565,14 +583,8 @@ def main():
             sys.exit(f"run.py: error: {e}")
     # On Ray, as many runs at once as the cluster has CPUs (a run asks for one); locally, --workers.
     workers = int(sys.modules["ray"].cluster_resources().get("CPU", 1)) if "ray" in sys.modules else args.workers
-    failed = run_grid(
-        jobs,
-        workers,
-        args.save_every,
-        args.status_every,
-        args.results_dir,
-        RayRun if args.backend == "ray" else launch_local,
-    )
+    launch = RayRun if args.backend == "ray" else launch_local
+    failed = run_grid(jobs, workers, args.save_every, args.status_every, args.results_dir, launch)
     finished = sum(job.csv.exists() for job in jobs)
     print(f"{finished}/{len(jobs)} runs finished" + (f", {failed} failed" if failed else ""))
     if failed:

@@ -52,6 +52,7 @@ class Suite:
     ranks: dict[str, int] = field(default_factory=dict)  # variant -> torchrun's processes for one run (else 1)
     in_readme: bool = False  # whether README.md's Results block summarizes it (at its own budget)
     rules: str = ""  # the envs' rules, when a module of ours defines them: runs on other rules are not the same runs
+    keep_checkpoints: dict[str, int] = field(default_factory=dict)  # label -> step: run.py keeps checkpoint_<label>.pt
 
 
 SUITES = {
@@ -283,6 +284,7 @@ SUITES = {
         ranks={"table4": 2, "table4-128": 2},
         report="roboschool",
         rules="Roboschool's body",
+        keep_checkpoints={"50M": 50_003_968},  # the first checkpoint past the earlier rules' budget, for the measures
     ),
 }
 

@@ -613,6 +613,35 @@ def test_roboschool_body_report_sets_each_run_beside_the_same_run_on_the_earlier
     assert "against the earlier rules" not in report.report(earlier, results=results)
 
 
+def test_a_long_runs_report_sets_its_midway_checkpoint_beside_its_end(tmp_path):
+    """The 100M runs are measured at the checkpoint run.py kept past 50M as well: the report's table gives, for each,
+    the score as it stood at that checkpoint's step and the measures of both checkpoints; README's line adds them."""
+    import roboschool_measures
+
+    from reports import roboschool
+    from results import load_runs
+
+    folder = tmp_path / "results" / "roboschool-body_100000"
+    fake_run(folder, "HumanoidFlagrunHarder-v0", "table4-128", 1, 1500.0)
+    fake_run(folder, "HumanoidFlagrun-v0", "table4-128", 1, 700.0)  # measured at its end only: no midway row
+    zero = dict.fromkeys(roboschool_measures.FIELDS, 0) | {"length": 100, "getup_steps": ""}
+    for name in ["HumanoidFlagrunHarder-v0__table4-128__seed1.csv", "HumanoidFlagrun-v0__table4-128__seed1.csv"]:
+        roboschool_measures.write(folder / "measures" / name, [zero | dict(seed=1, flags=3, falls=1, getups=1)])
+    midway = [zero | dict(seed=1, flags=2, falls=1, step=50_000), zero | dict(seed=2, step=50_000)]
+    roboschool_measures.write(folder / "measures" / "50M" / "HumanoidFlagrunHarder-v0__table4-128__seed1.csv", midway)
+    text = report.report(folder, results=tmp_path / "results")
+    table = text.split("## At 50M steps and at the end", 1)[1].split("\n\n", 3)[2]
+    # By step 50,000 the first 75 of the 150 episodes had ended (one every 666.7 steps): the 50 of -10,000, then
+    # 13 of 1,499 and 12 of 1,501, a mean of -6,166.7; at the end, the last 100 average 1,500.
+    run = "| HumanoidFlagrunHarder-v0, table4-128, seed1 |"
+    assert table.splitlines()[2:] == [
+        run + " 50,000 | -6,167 | 100 | 1.00 | 0.00 | 0.50 (0.00) | 0 (1) | – |",
+        run + " 100,000 | 1,500 | 100 | 3.00 | 0.00 | 1.00 (0.00) | 1 (1) | – |",
+    ]
+    line = roboschool.summary(folder, load_runs(folder), {}, tmp_path / "results")
+    assert "got up 1 of 1 times down (at 50M: -6,167, 1.00 flags, got up 0 of 1 times down)" in line
+
+
 def test_the_readmes_example_suite_is_one_entry_and_one_module(tmp_path, monkeypatch):
     """benchmarks/README.md's "Adding a suite": its entry of SUITES and its module of reports/ are all that run.py and
     report.py need to run the suite and write its report and README lines."""

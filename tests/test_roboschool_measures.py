@@ -43,7 +43,7 @@ def scripted(monkeypatch):
     def play(start_z, steps, episodes=1):
         env_id = f"ScriptedMeasures{len(steps)}-v0"
         gym.register(env_id, entry_point=lambda: Scripted(start_z, steps))
-        monkeypatch.setattr(measures, "policy", lambda checkpoint: (env_id, lambda obs: np.zeros(1)))
+        monkeypatch.setattr(measures, "policy", lambda checkpoint: (env_id, lambda obs: np.zeros(1), 4096))
         try:
             return measures.play("unused.pt", episodes)
         finally:
@@ -68,6 +68,7 @@ def test_falls_knockdowns_getups_and_the_speed_toward_the_flag(scripted):
     assert row["getups"] == 1 and row["getup_steps"] == 2
     assert row["started_down"] == 0 and row["cubes"] == 1 and row["flags"] == 1
     assert row["length"] == 41 and row["return"] == 41.0 and row["seed"] == 1
+    assert row["step"] == 4096, "the checkpoint's step, which the report reads for a midway checkpoint"
     # Speeds are counted from step 2 on, but for step 20: 39 steps of 0.1 m each.
     assert row["speed_to_flag"] == pytest.approx(0.1 / DT)
     assert measures.DT == DT
@@ -87,3 +88,30 @@ def test_a_fall_with_no_cube_thrown_is_no_knock_down_and_an_episode_with_no_get_
     (row,) = scripted(1.2, steps)
     assert row["falls"] == 1 and row["knockdowns"] == 0 and row["getups"] == 0 and row["getup_steps"] == ""
     assert "got up 0/1 times" in measures.summary([row])
+
+
+def test_a_checkpoint_kept_midway_is_measured_beside_the_last_into_a_folder_named_by_its_label(tmp_path, monkeypatch):
+    """run.py keeps checkpoint_50M.pt in a 100M run's folder: the measures play it too, into measures/50M/, and the last
+    checkpoint into measures/ as before."""
+    (job,) = measures.make_grid(
+        "roboschool-body", ["table4-128"], ["HumanoidFlagrun"], [1], None, tmp_path / "r", tmp_path
+    )
+    job.run_dir.mkdir(parents=True)
+    for name in ["checkpoint.pt", "checkpoint_50M.pt"]:
+        (job.run_dir / name).write_text(name)
+    job.csv.parent.mkdir(parents=True)
+    job.csv.write_text("finished")  # measured only once finished
+    played = []
+
+    def play(path, episodes):
+        played.append(path.name)
+        return [dict.fromkeys(measures.FIELDS, 0) | dict(seed=1, step=len(path.read_text()), getup_steps="")]
+
+    monkeypatch.setattr(measures, "play", play)
+    monkeypatch.setattr(measures, "make_grid", lambda suite, total_timesteps: [job])
+    monkeypatch.setattr(sys, "argv", ["roboschool_measures.py", "--suite", "roboschool-body", "--episodes", "1"])
+    measures.main()
+    assert sorted(played) == ["checkpoint.pt", "checkpoint_50M.pt"]
+    midway = (job.results_dir / "measures" / "50M" / f"{job.name}.csv").read_text().splitlines()
+    last = (job.results_dir / "measures" / f"{job.name}.csv").read_text().splitlines()
+    assert midway[1].endswith(f",{len('checkpoint_50M.pt')}") and last[1].endswith(f",{len('checkpoint.pt')}")

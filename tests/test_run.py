@@ -3,6 +3,7 @@ starts anything, runs the same on its Ray backend, and leaves each finished run 
 it logged."""
 
 import contextlib
+import dataclasses
 import math
 import os
 import signal
@@ -447,6 +448,27 @@ def test_progress_reads_the_last_step_or_rlhf_iteration_a_run_printed(tmp_path):
     )
     (job.run_dir / "log.txt").write_text("step 36,241,408/50,003,968 | SPS 4219\n" + traceback)
     assert len(traceback) > 8000 and run.last_step(job) == 36_241_408
+
+
+def test_a_long_run_keeps_the_first_checkpoint_at_or_past_each_mark_of_its_suite(tmp_path, monkeypatch):
+    """roboschool-body's 100M runs are measured at 50M too: the runner copies aside the first checkpoint a run saves at
+    or past the mark, and no later one replaces it."""
+    assert run.SUITES["roboschool-body"].keep_checkpoints == {"50M": 50_003_968}
+    monkeypatch.setitem(run.SUITES, "table1", dataclasses.replace(run.SUITES["table1"], keep_checkpoints={"4k": 4096}))
+    (job,) = run.make_grid("table1", ["kl0.01"], ["InvertedPendulum"], [1], 4 * 2048, tmp_path, tmp_path)
+    job.run_dir.mkdir(parents=True)
+    kept, seen = job.run_dir / "checkpoint_4k.pt", {}
+    for step, mtime in [(2048, 1), (4096, 2), (6144, 3), (8192, 4)]:
+        torch.save({"global_step": step}, job.checkpoint)
+        os.utime(job.checkpoint, ns=(mtime, mtime))  # each save a time of its own, however fast the filesystem's clock
+        run.keep_checkpoints(job, seen)
+        assert not kept.exists() if step < 4096 else torch.load(kept, weights_only=True)["global_step"] == 4096
+    # Through the runner, with a real run that saves after each of its 4 iterations.
+    job.run_dir.joinpath("checkpoint.pt").unlink()
+    kept.unlink()
+    assert run.run_grid([job], 1, save_every=1, status_every=1, results_root=tmp_path) == 0
+    assert 4096 <= torch.load(kept, weights_only=True)["global_step"] <= 4 * 2048
+    assert list(job.run_dir.glob("*.tmp")) == []
 
 
 def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):

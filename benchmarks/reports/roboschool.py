@@ -57,7 +57,13 @@ def tables(folder, runs, reference, results, level="##"):
     ]
     for env, v, setting_runs in settings(folder, runs):
         lines.append("| " + " | ".join([env, v, *score_cells(setting_runs), paper(env, v, reference) or "–"]) + " |")
-    return lines + measures_table(folder, level) + film_table(folder, level) + rules_table(folder, runs, level)
+    return (
+        lines
+        + measures_table(folder, level)
+        + midway_table(folder, runs, level)
+        + film_table(folder, level)
+        + rules_table(folder, runs, level)
+    )
 
 
 def summary(folder, runs, reference, results):
@@ -80,17 +86,55 @@ def summary(folder, runs, reference, results):
                 part += f", got up {getups} of {downs} times down"
             else:
                 part += f", fell in {sum(int(row['falls']) > 0 for row in rows)} of {len(rows)} episodes"
+        for label, kept in read_midway(folder).items():
+            rows = [(r, kept[name]) for r in setting_runs if (name := f"{r.env_id}__{r.variant}__seed{r.seed}") in kept]
+            if rows:
+                score = fmt(*mean_std([score_at(r, int(m[0]["step"])) for r, m in rows]))
+                flags = sum(float(row["flags"]) for _, m in rows for row in m) / sum(len(m) for _, m in rows)
+                part += f" (at {label}: {score}" + (f", {flags:.2f} flags" if "Flagrun" in env else "")
+                if can_get_up(env):
+                    part += ", got up {} of {} times down".format(*got_up([row for _, m in rows for row in m]))
+                part += ")"
         parts.append(part)
     return "; ".join(parts) + "."
 
 
-def read_measures(folder):
-    """{run name: [row, ...]} from <folder>/measures/*.csv (benchmarks/roboschool_measures.py)."""
+def read_measures(folder, label=""):
+    """{run name: [row, ...]} from <folder>/measures/*.csv (benchmarks/roboschool_measures.py), or from
+    measures/<label>/, the checkpoints that run.py kept midway."""
     out = {}
-    for path in sorted((Path(folder) / "measures").glob("*.csv")):
+    for path in sorted((Path(folder) / "measures" / label).glob("*.csv")):
         with open(path) as f:
             out[path.stem] = list(csv.DictReader(f))
     return out
+
+
+def read_midway(folder):
+    """{label: {run name: [row, ...]}} for each checkpoint kept midway (measures/<label>/), such as 50M."""
+    labels = sorted(p.name for p in (Path(folder) / "measures").glob("*") if p.is_dir())
+    return {label: read_measures(folder, label) for label in labels}
+
+
+def score_at(run, step):
+    """The run's score as it stood at `step`: the mean return of the last 100 episodes that ended by then."""
+    from results import score
+
+    return score([row for row in run.rows if row[0] <= step])
+
+
+def measure_cells(name, rows):
+    """A run's measures as cells: steps an episode, flags reached, speed toward the flag, falls (knock-downs), got up
+    (times down) and the steps it took; means over episodes."""
+
+    def mean(key):
+        values = [float(r[key]) for r in rows if r[key] != ""]
+        return sum(values) / len(values) if values else None
+
+    getups, downs = got_up(rows)
+    steps_up = mean("getup_steps")
+    up = [f"{getups} ({downs})", f"{steps_up:.0f}" if steps_up is not None else "–"] if can_get_up(name) else ["–"] * 2
+    cells = [f"{mean('length'):.0f}", f"{mean('flags'):.2f}", f"{mean('speed_to_flag'):.2f}"]
+    return cells + [f"{mean('falls'):.2f} ({mean('knockdowns'):.2f})", *up]
 
 
 def measures_table(folder, level):
@@ -113,22 +157,38 @@ def measures_table(folder, level):
         "|---|---|---|---|---|---|---|",
     ]
     for name, rows in measures.items():
+        lines.append("| " + " | ".join([name.replace("__", ", "), *measure_cells(name, rows)]) + " |")
+    return lines
 
-        def mean(key, rows=rows):
-            values = [float(r[key]) for r in rows if r[key] != ""]
-            return sum(values) / len(values) if values else None
 
-        getups, downs = got_up(rows)
-        steps_up = mean("getup_steps")
-        up = (
-            f"{getups} ({downs}) | {f'{steps_up:.0f}' if steps_up is not None else '–'}"
-            if can_get_up(name)
-            else "– | –"
-        )
-        lines.append(
-            f"| {name.replace('__', ', ')} | {mean('length'):.0f} | {mean('flags'):.2f} | {mean('speed_to_flag'):.2f}"
-            f" | {mean('falls'):.2f} ({mean('knockdowns'):.2f}) | {up} |"
-        )
+def midway_table(folder, runs, level):
+    """Each run at the checkpoint that run.py kept midway beside its end: the score as it stood at that checkpoint's
+    step, and the measures of both checkpoints."""
+    midway, last = read_midway(folder), read_measures(folder)
+    lines = []
+    for label, kept in midway.items():
+        lines += [
+            "",
+            f"{level} At {label} steps and at the end",
+            "",
+            f"Each run at the checkpoint that `benchmarks/run.py` kept midway (the first saved at or past {label}"
+            " steps), beside its last. Last 100 is the mean return of the last 100 episodes of training that had"
+            " ended by the checkpoint's step; the rest are the measures above, of the same episodes.",
+            "",
+            "| run | steps | last 100 | steps an episode | flags reached an episode | speed toward the flag or target"
+            " (m/s) | falls (knock-downs) an episode | got up (times down) | steps to get up |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for run in runs:
+            name = f"{run.env_id}__{run.variant}__seed{run.seed}"
+            if name not in kept:
+                continue
+            for rows, step in [
+                (kept[name], int(kept[name][0]["step"])),
+                (last.get(name), int(run.meta["global_step"])),
+            ]:
+                cells = [name.replace("__", ", "), f"{step:,}", fmt(score_at(run, step))]
+                lines.append("| " + " | ".join(cells + (measure_cells(name, rows) if rows else ["–"] * 6)) + " |")
     return lines
 
 
