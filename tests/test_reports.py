@@ -607,7 +607,9 @@ def test_roboschool_body_report_sets_each_run_beside_the_same_run_on_the_earlier
     assert "## Roboschool's body against the earlier rules" in text
     assert "in `benchmarks/results/roboschool_100000`" in text
     # earlier: 2 episodes of 1 flag, each started down and never got up; body: 3 flags, 1 get-up of 1 fall
-    assert "| HumanoidFlagrunHarder-v0 | table4-128 | 1 | 900.0 | 1,500 | 1.00 | 3.00 | 0 (2) | 1 (1) |" in text
+    assert (
+        "| HumanoidFlagrunHarder-v0 | table4-128 | 1 | 100,000 | 900.0 | 1,500 | 1.00 | 3.00 | 0 (2) | 1 (1) |" in text
+    )
     section = text.split("against the earlier rules", 1)[1].split("\n\n", 3)[2]  # the table
     assert section.count("\n| Humanoid") == 1
     assert "against the earlier rules" not in report.report(earlier, results=results)
@@ -621,8 +623,9 @@ def test_a_long_runs_report_sets_its_midway_checkpoint_beside_its_end(tmp_path):
     from reports import roboschool
     from results import load_runs
 
-    folder = tmp_path / "results" / "roboschool-body_100000"
+    folder, earlier = tmp_path / "results" / "roboschool-body", tmp_path / "results" / "roboschool"
     fake_run(folder, "HumanoidFlagrunHarder-v0", "table4-128", 1, 1500.0)
+    fake_run(earlier, "HumanoidFlagrunHarder-v0", "table4-128", 1, 900.0, steps=50_000)  # the earlier rules, shorter
     fake_run(folder, "HumanoidFlagrun-v0", "table4-128", 1, 700.0)  # measured at its end only: no midway row
     zero = dict.fromkeys(roboschool_measures.FIELDS, 0) | {"length": 100, "getup_steps": ""}
     for name in ["HumanoidFlagrunHarder-v0__table4-128__seed1.csv", "HumanoidFlagrun-v0__table4-128__seed1.csv"]:
@@ -637,6 +640,11 @@ def test_a_long_runs_report_sets_its_midway_checkpoint_beside_its_end(tmp_path):
     assert table.splitlines()[2:] == [
         run + " 50,000 | -6,167 | 100 | 1.00 | 0.00 | 0.50 (0.00) | 0 (1) | – |",
         run + " 100,000 | 1,500 | 100 | 3.00 | 0.00 | 1.00 (0.00) | 1 (1) | – |",
+    ]
+    # Beside the earlier rules' shorter run, this run as it stood at 50,000 steps, with the measures kept there.
+    rules = text.split("## Roboschool's body against the earlier rules", 1)[1].split("\n\n", 3)[2]
+    assert rules.splitlines()[2:] == [
+        "| HumanoidFlagrunHarder-v0 | table4-128 | 1 | 50,000 | 900.0 | -6,167 | – | 1.00 | – | 0 (1) |"
     ]
     line = roboschool.summary(folder, load_runs(folder), {}, tmp_path / "results")
     assert "got up 1 of 1 times down (at 50M: -6,167, 1.00 flags, got up 0 of 1 times down)" in line

@@ -229,36 +229,45 @@ def earlier_folder(folder):
 
 
 def rules_table(folder, runs, level):
-    """Each run beside the same run on the earlier rules: the score and, where both were measured, flags reached an
-    episode and, for FlagrunHarder, the get-ups."""
+    """Each run beside the same seed and settings on the earlier rules, at the earlier run's budget: the score and,
+    where both were measured, flags reached an episode and, for FlagrunHarder, the get-ups. A longer run here is taken
+    as it stood at that budget, with the measures of the checkpoint that run.py kept there."""
     from results import load_runs
 
     other = earlier_folder(folder)
     if other is None:
         return []
     earlier = {(r.env_id, r.variant, r.seed): r for r in load_runs(other)}
-    measures = (read_measures(folder), read_measures(other))
+    measures, midway = (read_measures(folder), read_measures(other)), read_midway(folder)
     lines = [
         "",
         f"{level} Roboschool's body against the earlier rules",
         "",
-        f"The same command and seed on the earlier rules (gymnasium's body, its joint springs and dampers, the height"
-        f" of MuJoCo's torso origin, the mean of 13 bodies), in `benchmarks/results/{other.name}`. Flags and"
-        " get-ups are the measures above, on each run's own rules.",
+        "The same seed and settings on the earlier rules (gymnasium's body, its joint springs and dampers, the height"
+        f" of MuJoCo's torso origin, the mean of 13 bodies), in `benchmarks/results/{other.name}`, at the earlier"
+        " run's budget. A longer run here is taken as it stood at that step: the mean return of its last 100 episodes"
+        " that had ended by then, and the measures of the checkpoint kept at or just past it. Its log std, annealed"
+        " over its own budget, was then at a different point of its schedule. Flags and get-ups are measured on each"
+        " run's own rules.",
         "",
-        "| env | setting | seed | earlier rules: last 100 | Roboschool's body: last 100 | earlier: flags an episode"
-        " | body: flags an episode | earlier: got up (times down) | body: got up (times down) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| env | setting | seed | steps | earlier rules: last 100 | Roboschool's body: last 100 | earlier: flags an"
+        " episode | body: flags an episode | earlier: got up (times down) | body: got up (times down) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for run in runs:
         before = earlier.get((run.env_id, run.variant, run.seed))
-        if before is None:
+        steps = int(before.meta["global_step"]) if before else None
+        if before is None or int(run.meta["global_step"]) < steps:
             continue
         name = f"{run.env_id}__{run.variant}__seed{run.seed}"
-        rows = [m.get(name, []) for m in measures]
-        flags = [f"{sum(float(r['flags']) for r in x) / len(x):.2f}" if x else "–" for x in rows[::-1]]
-        ups = ["{} ({})".format(*got_up(x)) if x and can_get_up(name) else "–" for x in rows[::-1]]
-        cells = [run.env_id, run.variant, str(run.seed), fmt(before.score), fmt(run.score), *flags, *ups]
+        score, rows = run.score, measures[0].get(name, [])
+        if int(run.meta["global_step"]) > steps:  # as it stood at the earlier run's budget
+            kept = [m[name] for m in midway.values() if name in m and int(m[name][0]["step"]) >= steps]
+            score, rows = score_at(run, steps), min(kept, key=lambda m: int(m[0]["step"])) if kept else []
+        both = [measures[1].get(name, []), rows]
+        flags = [f"{sum(float(r['flags']) for r in x) / len(x):.2f}" if x else "–" for x in both]
+        ups = ["{} ({})".format(*got_up(x)) if x and can_get_up(name) else "–" for x in both]
+        cells = [run.env_id, run.variant, str(run.seed), f"{steps:,}", fmt(before.score), fmt(score), *flags, *ups]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
