@@ -417,7 +417,7 @@ def test_a_fall_within_30_steps_of_a_throw_is_a_knock_down(monkeypatch, after, k
     steps = [(1.2, int(t >= 5)) for t in range(1, 5 + after)] + [(0.5, 1)] * 2
     env_id = f"ScriptedKnockdown{after}-v0"
     gym.register(env_id, entry_point=lambda: Scripted(steps))
-    monkeypatch.setattr(measures, "policy", lambda checkpoint: (env_id, lambda obs: np.zeros(1)))
+    monkeypatch.setattr(measures, "policy", lambda checkpoint: (env_id, lambda obs: np.zeros(1), 0))
     try:
         (row,) = measures.play("unused.pt", 1)
     finally:
