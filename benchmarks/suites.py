@@ -30,7 +30,7 @@ TABLE4 = shlex.split(
 )
 # Table 4's 128 actors, which the paper gave its flagrun tasks.
 TABLE4_128 = [("128" if flag == "32" else flag) for flag in TABLE4]
-# The paper's three humanoid tasks with Roboschool's rules on MuJoCo (issue 59), loaded by gymnasium's module:id form.
+# The paper's three humanoid tasks with Roboschool's rules on MuJoCo, loaded by gymnasium's module:id form.
 ROBOSCHOOL = [
     f"roboschool_humanoid:{task}-v0" for task in ("HumanoidForward", "HumanoidFlagrun", "HumanoidFlagrunHarder")
 ]
@@ -254,7 +254,7 @@ SUITES = {
         report="humanoid",
         in_readme=True,
     ),
-    # Figure 4's three tasks (issue 59), each run in 2 processes under torchrun: the forward walk with Table 4's 32
+    # Figure 4's three tasks, each run in 2 processes under torchrun: the forward walk with Table 4's 32
     # actors, the flagrun tasks with its 128. 50M steps (the figure's flagrun axes reach 100M) for seed 1 of the flagrun
     # tasks; the 10M pilots and seeds 2-3 run at --total-timesteps 10027008 (results/roboschool_10027k/).
     "roboschool": Suite(

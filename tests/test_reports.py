@@ -630,21 +630,21 @@ def test_a_long_runs_report_sets_its_midway_checkpoint_beside_its_end(tmp_path):
     zero = dict.fromkeys(roboschool_measures.FIELDS, 0) | {"length": 100, "getup_steps": ""}
     for name in ["HumanoidFlagrunHarder-v0__table4-128__seed1.csv", "HumanoidFlagrun-v0__table4-128__seed1.csv"]:
         roboschool_measures.write(folder / "measures" / name, [zero | dict(seed=1, flags=3, falls=1, getups=1)])
-    midway = [zero | dict(seed=1, flags=2, falls=1, step=50_000), zero | dict(seed=2, step=50_000)]
+    midway = [zero | dict(seed=1, flags=2, falls=1, step=50_500), zero | dict(seed=2, step=50_500)]
     roboschool_measures.write(folder / "measures" / "50M" / "HumanoidFlagrunHarder-v0__table4-128__seed1.csv", midway)
     text = report.report(folder, results=tmp_path / "results")
     table = text.split("## At 50M steps and at the end", 1)[1].split("\n\n", 3)[2]
-    # By step 50,000 the first 75 of the 150 episodes had ended (one every 666.7 steps): the 50 of -10,000, then
+    # By step 50,500 the first 75 of the 150 episodes had ended (one every 666.7 steps): the 50 of -10,000, then
     # 13 of 1,499 and 12 of 1,501, a mean of -6,166.7; at the end, the last 100 average 1,500.
     run = "| HumanoidFlagrunHarder-v0, table4-128, seed1 |"
     assert table.splitlines()[2:] == [
-        run + " 50,000 | -6,167 | 100 | 1.00 | 0.00 | 0.50 (0.00) | 0 (1) | – |",
+        run + " 50,500 | -6,167 | 100 | 1.00 | 0.00 | 0.50 (0.00) | 0 (1) | – |",
         run + " 100,000 | 1,500 | 100 | 3.00 | 0.00 | 1.00 (0.00) | 1 (1) | – |",
     ]
-    # Beside the earlier rules' shorter run, this run as it stood at 50,000 steps, with the measures kept there.
+    # Beside the earlier rules' 50,000 steps, this run at the checkpoint kept just past them: its score and measures.
     rules = text.split("## Roboschool's body against the earlier rules", 1)[1].split("\n\n", 3)[2]
     assert rules.splitlines()[2:] == [
-        "| HumanoidFlagrunHarder-v0 | table4-128 | 1 | 50,000 | 900.0 | -6,167 | – | 1.00 | – | 0 (1) |"
+        "| HumanoidFlagrunHarder-v0 | table4-128 | 1 | 50,000 | 900.0 | -6,167 (at 50,500) | – | 1.00 | – | 0 (1) |"
     ]
     line = roboschool.summary(folder, load_runs(folder), {}, tmp_path / "results")
     assert "got up 1 of 1 times down (at 50M: -6,167, 1.00 flags, got up 0 of 1 times down)" in line

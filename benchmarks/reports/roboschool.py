@@ -24,7 +24,7 @@ RULE = (
 
 
 def paper(env, variant, reference):
-    """Figure 4's rough end point for the task, where issue 59 read one; else an empty string."""
+    """Figure 4's rough end point for the task, where one was read from the plot; else an empty string."""
     refs = [reference.get((column, env_base(env), variant)) for column, _, _ in COLUMNS["roboschool"]]
     return "; ".join(fmt(r[0]) for r in refs if r)
 
@@ -133,7 +133,7 @@ def measure_cells(name, rows):
     getups, downs = got_up(rows)
     steps_up = mean("getup_steps")
     up = [f"{getups} ({downs})", f"{steps_up:.0f}" if steps_up is not None else "–"] if can_get_up(name) else ["–"] * 2
-    cells = [f"{mean('length'):.0f}", f"{mean('flags'):.2f}", f"{mean('speed_to_flag'):.2f}"]
+    cells = [f"{mean('length'):,.0f}", f"{mean('flags'):.2f}", f"{mean('speed_to_flag'):.2f}"]
     return cells + [f"{mean('falls'):.2f} ({mean('knockdowns'):.2f})", *up]
 
 
@@ -245,10 +245,10 @@ def rules_table(folder, runs, level):
         "",
         "The same seed and settings on the earlier rules (gymnasium's body, its joint springs and dampers, the height"
         f" of MuJoCo's torso origin, the mean of 13 bodies), in `benchmarks/results/{other.name}`, at the earlier"
-        " run's budget. A longer run here is taken as it stood at that step: the mean return of its last 100 episodes"
-        " that had ended by then, and the measures of the checkpoint kept at or just past it. Its log std, annealed"
-        " over its own budget, was then at a different point of its schedule. Flags and get-ups are measured on each"
-        " run's own rules.",
+        " run's budget. A longer run here is taken at the checkpoint that run.py kept at or just past that step (its"
+        " step in brackets): the mean return of its last 100 episodes that had ended by then, and that checkpoint's"
+        " measures. Its log std, annealed over its own budget, was then at a different point of its schedule. Flags"
+        " and get-ups are measured on each run's own rules.",
         "",
         "| env | setting | seed | steps | earlier rules: last 100 | Roboschool's body: last 100 | earlier: flags an"
         " episode | body: flags an episode | earlier: got up (times down) | body: got up (times down) |",
@@ -260,14 +260,16 @@ def rules_table(folder, runs, level):
         if before is None or int(run.meta["global_step"]) < steps:
             continue
         name = f"{run.env_id}__{run.variant}__seed{run.seed}"
-        score, rows = run.score, measures[0].get(name, [])
-        if int(run.meta["global_step"]) > steps:  # as it stood at the earlier run's budget
+        score, rows = fmt(run.score), measures[0].get(name, [])
+        if int(run.meta["global_step"]) > steps:  # at the checkpoint kept at or just past the earlier run's budget
             kept = [m[name] for m in midway.values() if name in m and int(m[name][0]["step"]) >= steps]
-            score, rows = score_at(run, steps), min(kept, key=lambda m: int(m[0]["step"])) if kept else []
+            rows = min(kept, key=lambda m: int(m[0]["step"])) if kept else []
+            at = int(rows[0]["step"]) if rows else steps
+            score = f"{fmt(score_at(run, at))} (at {at:,})"
         both = [measures[1].get(name, []), rows]
         flags = [f"{sum(float(r['flags']) for r in x) / len(x):.2f}" if x else "–" for x in both]
         ups = ["{} ({})".format(*got_up(x)) if x and can_get_up(name) else "–" for x in both]
-        cells = [run.env_id, run.variant, str(run.seed), f"{steps:,}", fmt(before.score), fmt(score), *flags, *ups]
+        cells = [run.env_id, run.variant, str(run.seed), f"{steps:,}", fmt(before.score), score, *flags, *ups]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
