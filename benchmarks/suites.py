@@ -113,8 +113,8 @@ SUITES = {
         },
     ),
     # The paper trained Atari for 10M agent steps (40M frames); here 1M, a tenth. The peer at the same budget is
-    # SB3's PPO with the RL Zoo's Atari hyperparameters, on the two games where we trail it. vf0.5 is issue 30's
-    # arm V: the value term weighed as the paper's code (baselines pposgd_simple, da99706) weighed it. e4 is its
+    # SB3's PPO with the RL Zoo's Atari hyperparameters, on the two games where we trail it. vf0.5 is the
+    # arm V: the value term weighed as the paper's code (baselines pposgd_simple, da99706) weighed it. e4 is
     # arm E: 4 epochs per update, as CleanRL, ppo2 and the RL Zoo use, where Table 5 says 3. novclip is arm C: L^VF
     # unclipped, as eq. (9) writes it and SB3 computes it, on Pong, which has no lives. zoo has all three of the RL
     # Zoo's settings that differ from ours: if it trails SB3 too, the gap is not in the hyperparameters.
@@ -142,10 +142,10 @@ SUITES = {
         report="atari",
         in_readme=True,
     ),
-    # RLHF (issues 29, 40, 47): beta of the KL penalty to pi_SFT fixed at 0 (no leash), 0.01, 0.05 (the default) and
+    # RLHF: beta of the KL penalty to pi_SFT fixed at 0 (no leash), 0.01, 0.05 (the default) and
     # 0.2, or adapted by Ziegler et al.'s controller toward 2 nats from 0.05; the three group baselines in place of the
     # critic and GAE (GRPO, Dr. GRPO, RLOO) at beta 0.05; and DPO at the beta of Rafailov et al.'s experiments, 0.1,
-    # and at 0.5 (on seed 4, DPO's KL grew past 20 nats at beta 0.05 and settled near 6 at 0.5); and IPO (issue 54),
+    # and at 0.5 (on seed 4, DPO's KL grew past 20 nats at beta 0.05 and settled near 6 at 0.5); and IPO,
     # DPO's pairs with Azar et al.'s bounded squared loss, at DPO's 0.1.
     # Best-of-N from pi_SFT, which trains nothing, is benchmarks/best_of_n.py on each seed's stages 1 and 2.
     # "reviews" is the script's own language, not an env; the budget is in responses. Each run trains its own stages 1
@@ -163,7 +163,7 @@ SUITES = {
             "dpo0.1": ("ppo_rlhf.py", ["--dpo", "--kl-coef", "0.1"]),
             "dpo0.5": ("ppo_rlhf.py", ["--dpo", "--kl-coef", "0.5"]),
             "ipo0.1": ("ppo_rlhf.py", ["--dpo", "--ipo", "--kl-coef", "0.1"]),
-            # KTO (issue 60) at beta 0.1, DPO's; and with a tenth of the desirable responses, weighted 10 so that
+            # KTO at beta 0.1, DPO's; and with a tenth of the desirable responses, weighted 10 so that
             # lambda_D n_D / (lambda_U n_U) stays 1, in the range [1, 4/3] its paper recommends for imbalanced data
             "kto0.1": ("ppo_rlhf.py", ["--kto", "--kl-coef", "0.1"]),
             "kto0.1-tenth": ("ppo_rlhf.py", ["--kto", "--kl-coef", "0.1", "--kto-desirable-share", "0.1"] + KTO_TENTH),
@@ -181,7 +181,7 @@ SUITES = {
         budget_flag="--total-episodes",
         report="rlhf",
     ),
-    # Over-optimization as Gao et al. 2022 (arXiv:2210.10760) measured it (issue 54): runs long enough to pass the gold
+    # Over-optimization as Gao et al. 2022 (arXiv:2210.10760) measured it: runs long enough to pass the gold
     # peak, at beta 0 and at the default 0.05, and beta 0 with reward models from 1,024, 4,096 (the default) and 16,384
     # pairs. The length, 8 times the rlhf suite's, is that of pilot runs on seed 4, outside the reported seeds (their
     # results and what they showed: rlhf-long_102400/, and this suite's report).
@@ -223,7 +223,7 @@ SUITES = {
         # the pilot chose min by the rule above (rlhf-long_51200/report.md has both peaks); uwo ran only there
         only={"ens4-uwo-same-head": (["reviews"], [4])},
     ),
-    # The paper's Figure 3 (issue 41): the algorithms PPO was compared with, on the mujoco suite's tasks and budget.
+    # The paper's Figure 3: the algorithms PPO was compared with, on the mujoco suite's tasks and budget.
     # A2C is Stable-Baselines3's, TRPO sb3-contrib's, each with the RL Zoo's hyperparameters for the task (SB3's
     # defaults where the Zoo has none; benchmarks/sb3_mujoco.py). PPO's curves are the mujoco suite's runs.
     "figure3": Suite(
@@ -237,10 +237,10 @@ SUITES = {
         "SB3's A2C and sb3-contrib's TRPO with the RL Zoo's hyperparameters, beside the mujoco suite's PPO",
         report="figure3",
     ),
-    # The paper's §6.3 humanoid showcase (issue 50): Table 4 on Humanoid-v5, the maintained stand-in for
+    # The paper's §6.3 humanoid showcase: Table 4 on Humanoid-v5, the maintained stand-in for
     # RoboschoolHumanoid. 32 actors, T 512, 15 epochs, minibatch 4,096, gamma 0.99, lambda 0.95 (the defaults), the log
     # std annealed from -0.7 to -1.6, and the step size adapted to a KL target the paper does not give (0.01).
-    # table4-2ranks (issue 53): the same run in 2 processes under torchrun, each stepping 16 of the 32 actors, as the
+    # table4-2ranks: the same run in 2 processes under torchrun, each stepping 16 of the 32 actors, as the
     # paper's own code ran its actors over MPI; seeds 1-3.
     "humanoid": Suite(
         {"table4": ("ppo_continuous.py", TABLE4), "table4-2ranks": ("ppo_continuous.py", TABLE4)},
@@ -318,11 +318,11 @@ ATARI_NAMES = {
     "novclip": "ours, --no-clip-vloss",
     "zoo": "ours with the RL Zoo's hyperparameters (--update-epochs 4 --vf-coef 0.5 --no-clip-vloss)",
     "sb3": "SB3 PPO (RL Zoo)",
-    "default": "ours, before the issue-14 fixes",
+    "default": "ours at 13a1a4a (L^VF halved, before the paper's c1 = 1 and fixed value clip)",
 }
 
 
-# The paper's Figure 3 (issue 41): PPO is the mujoco suite's default runs, the peers are the figure3 suite's.
+# The paper's Figure 3: PPO is the mujoco suite's default runs, the peers are the figure3 suite's.
 FIGURE3_NAMES = {"ppo": "PPO (ours)", "a2c": "A2C (SB3)", "trpo": "TRPO (sb3-contrib)"}
 FIGURE3_MISSING = (
     "Not reproduced: the paper's Figure 3 also has CEM, vanilla policy gradient with an adaptive step size, and A2C"
@@ -332,9 +332,9 @@ FIGURE3_MISSING = (
 
 
 # The README's Atari block: ours at the defaults, ours with the three settings in which the RL Zoo's differ from
-# ours (issue 30), and SB3's PPO with the RL Zoo's settings.
+# ours, and SB3's PPO with the RL Zoo's settings.
 README_ATARI_VARIANTS = ("ppo", "zoo", "sb3")
 
 
-# The envs of our Table 1 (issue 12): four of the paper's seven, for compute.
+# The envs of our Table 1: four of the paper's seven, for compute.
 TABLE1_ENVS = ["HalfCheetah-v5", "Hopper-v5", "InvertedPendulum-v5", "Reacher-v5"]

@@ -21,7 +21,7 @@ compilation's cost.
 - ours: `train(args)` of the script, rollout + update + TensorBoard logging + checkpointing, eager
   and with `--compile`, with the torch threads that the script's `main()` sets (`--torch-threads`); the
   iteration ends are the wall times of its `charts/SPS` events. A case that starts with `torchrun --nproc-per-node P`
-  is the same `train(args)` in P processes of one run (issue 53), timed by rank 0, whose steps count every rank's;
+  is the same `train(args)` in P processes of one run, timed by rank 0, whose steps count every rank's;
 - the peers: `model.learn()` of Stable-Baselines3's PPO with the same hyperparameters, network and
   normalization (VecNormalize), once with torch's default threads and once with 1 thread; the
   iteration ends are its rollout ends;

@@ -128,7 +128,8 @@ def test_atari_report_gives_each_arms_difference_from_the_default(tmp_path):
     for variant, name in (("vf0.5", "ours, --vf-coef 0.5"), ("sb3", "SB3 PPO (RL Zoo)")):
         cell = f"{statistics.mean(scores[variant]):.2f} ± {statistics.stdev(scores[variant]):.2f} (3)"
         assert f"| A-v0 | {name} | {cell} | {vf if variant == 'vf0.5' else sb3} |" in text
-    assert "| A-v0 | ours, before the issue-14 fixes | 30.00 (1) | – | – | fewer than 2 seeds a side |" in text
+    default = "ours at 13a1a4a (L^VF halved, before the paper's c1 = 1 and fixed value clip)"
+    assert f"| A-v0 | {default} | 30.00 (1) | – | – | fewer than 2 seeds a side |" in text
     behind = [0.0, 2.0, 4.0]  # vf0.5 now behind ppo by 10, with the same spread
     for seed, value in enumerate(behind, start=1):
         fake_run(folder, "A-v0", "vf0.5", seed, value)
@@ -141,7 +142,7 @@ def test_atari_report_gives_each_arms_difference_from_the_default(tmp_path):
     zoo = [line for line in short.splitlines() if line.startswith("| A-v0 | ours with the RL Zoo's hyperparameters (")]
     assert len(zoo) == 1 and "| 25.00 (1) |" in zoo[0]  # its last 100 games
     assert "| A-v0 | ours | " in short and "| A-v0 | SB3 PPO (RL Zoo) |" in short
-    assert "| A-v0 | ours, --vf-coef 0.5 |" not in short and "issue-14" not in short
+    assert "| A-v0 | ours, --vf-coef 0.5 |" not in short and "13a1a4a" not in short
     assert "| A-v0 | ours, --vf-coef 0.5 |" in report.readme_block(results=results, reference={}, full=True)
 
 

@@ -1,5 +1,5 @@
 """The atari family: both of the paper's Atari metrics (§6.4) per game and setting, beside the random policy and the
-published figures at ten times our budget, and each arm against today's defaults (issue 30)."""
+published figures at ten times our budget, and each arm against today's defaults."""
 
 from __future__ import annotations
 
@@ -77,7 +77,7 @@ def atari_table(runs, reference, variants, results):
 def atari_comparison(runs, variants, base="ppo"):
     """Each arm against today's defaults (`base`), per game and on both of the paper's Atari metrics: the difference
     of the mean scores and its standard error over seeds (difference(), as the shortfalls suites have it), and whether
-    the arm is ahead or behind by more than 2 standard errors, or within them (issue 30)."""
+    the arm is ahead or behind by more than 2 standard errors, or within them."""
     by_env = group(runs)
     arms = [v for v in variants if v != base]
     if base not in variants or not arms:

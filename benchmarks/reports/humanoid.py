@@ -60,7 +60,7 @@ def score_cells(runs):
 
 
 def welch_line(by_variant, variant="table4-2ranks", base="table4"):
-    """The same run in 2 processes against one (issue 53): Welch's t-test of their last-100 scores over seeds."""
+    """The same run in 2 processes against one: Welch's t-test of their last-100 scores over seeds."""
     if variant not in by_variant or base not in by_variant:
         return []
     scores, base_scores = [r.score for r in by_variant[variant]], [r.score for r in by_variant[base]]
