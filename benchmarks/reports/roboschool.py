@@ -231,7 +231,7 @@ def earlier_folder(folder):
 def rules_table(folder, runs, level):
     """Each run beside the same seed and settings on the earlier rules, at the earlier run's budget: the score and,
     where both were measured, flags reached an episode and, for FlagrunHarder, the get-ups. A longer run here is taken
-    as it stood at that budget, with the measures of the checkpoint that run.py kept there."""
+    at the checkpoint that run.py kept at or just past that budget: its score then, and that checkpoint's measures."""
     from results import load_runs
 
     other = earlier_folder(folder)
