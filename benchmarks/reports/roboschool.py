@@ -29,6 +29,16 @@ def paper(env, variant, reference):
     return "; ".join(fmt(r[0]) for r in refs if r)
 
 
+def run_name(run):
+    """The name of a run's measures file: <env>__<variant>__seed<N>."""
+    return f"{run.env_id}__{run.variant}__seed{run.seed}"
+
+
+def flags(rows):
+    """Flags reached an episode, over episodes' measures."""
+    return sum(float(r["flags"]) for r in rows) / len(rows)
+
+
 def got_up(rows):
     """(get-ups, times down) over episodes' measures: a time down is a fall or a start on the ground."""
     return sum(int(r["getups"]) for r in rows), sum(int(r["falls"]) + int(r["started_down"]) for r in rows)
@@ -77,23 +87,23 @@ def summary(folder, runs, reference, results):
         figure = paper(env, v, reference)
         part = f"{env} ({v}) {fmt(*mean_std(last))} over the last 100 episodes ({seeds}"
         part += f"; Figure 4: about {figure} near 100M)" if figure else ")"
-        rows = [row for r in setting_runs for row in measures.get(f"{r.env_id}__{r.variant}__seed{r.seed}", [])]
+        rows = [row for r in setting_runs for row in measures.get(run_name(r), [])]
         if rows:
             if "Flagrun" in env:
-                part += f", {sum(float(row['flags']) for row in rows) / len(rows):.2f} flags reached an episode"
+                part += f", {flags(rows):.2f} flags reached an episode"
             if can_get_up(env):
                 getups, downs = got_up(rows)
                 part += f", got up {getups} of {downs} times down"
             else:
                 part += f", fell in {sum(int(row['falls']) > 0 for row in rows)} of {len(rows)} episodes"
         for label, kept in read_midway(folder).items():
-            rows = [(r, kept[name]) for r in setting_runs if (name := f"{r.env_id}__{r.variant}__seed{r.seed}") in kept]
-            if rows:
-                score = fmt(*mean_std([score_at(r, int(m[0]["step"])) for r, m in rows]))
-                flags = sum(float(row["flags"]) for _, m in rows for row in m) / sum(len(m) for _, m in rows)
-                part += f" (at {label}: {score}" + (f", {flags:.2f} flags" if "Flagrun" in env else "")
+            at = [r for r in setting_runs if run_name(r) in kept]
+            if at:
+                score = fmt(*mean_std([score_at(r, int(kept[run_name(r)][0]["step"])) for r in at]))
+                rows = [row for r in at for row in kept[run_name(r)]]
+                part += f" (at {label}: {score}" + (f", {flags(rows):.2f} flags" if "Flagrun" in env else "")
                 if can_get_up(env):
-                    part += ", got up {} of {} times down".format(*got_up([row for _, m in rows for row in m]))
+                    part += ", got up {} of {} times down".format(*got_up(rows))
                 part += ")"
         parts.append(part)
     return "; ".join(parts) + "."
@@ -180,7 +190,7 @@ def midway_table(folder, runs, level):
             "|---|---|---|---|---|---|---|---|---|",
         ]
         for run in runs:
-            name = f"{run.env_id}__{run.variant}__seed{run.seed}"
+            name = run_name(run)
             if name not in kept:
                 continue
             for rows, step in [
@@ -259,7 +269,7 @@ def rules_table(folder, runs, level):
         steps = int(before.meta["global_step"]) if before else None
         if before is None or int(run.meta["global_step"]) < steps:
             continue
-        name = f"{run.env_id}__{run.variant}__seed{run.seed}"
+        name = run_name(run)
         score, rows = fmt(run.score), measures[0].get(name, [])
         if int(run.meta["global_step"]) > steps:  # at the checkpoint kept at or just past the earlier run's budget
             kept = [m[name] for m in midway.values() if name in m and int(m[name][0]["step"]) >= steps]
@@ -267,9 +277,9 @@ def rules_table(folder, runs, level):
             at = int(rows[0]["step"]) if rows else steps
             score = f"{fmt(score_at(run, at))} (at {at:,})"
         both = [measures[1].get(name, []), rows]
-        flags = [f"{sum(float(r['flags']) for r in x) / len(x):.2f}" if x else "–" for x in both]
+        flag_cells = [f"{flags(x):.2f}" if x else "–" for x in both]
         ups = ["{} ({})".format(*got_up(x)) if x and can_get_up(name) else "–" for x in both]
-        cells = [run.env_id, run.variant, str(run.seed), f"{steps:,}", fmt(before.score), score, *flags, *ups]
+        cells = [run.env_id, run.variant, str(run.seed), f"{steps:,}", fmt(before.score), score, *flag_cells, *ups]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
