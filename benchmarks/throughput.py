@@ -89,7 +89,7 @@ SUITES = {
         "settings": "Table 4: 32 envs, T=512, K=15 epochs, minibatch 4,096, 64x64 tanh MLPs, log std annealed (SB3:"
         " fixed at -0.7), lr adapted to the KL (SB3: constant)",
     },
-    # Issue 59: the paper's three humanoid tasks (roboschool_humanoid.py) are env-bound at 50M steps: each env alone,
+    # The paper's three humanoid tasks (roboschool_humanoid.py) are env-bound at 50M steps: each env alone,
     # beside gymnasium's Humanoid-v5, reset when its episode ends.
     "roboschool": {
         "env_id": "Humanoid-v5",

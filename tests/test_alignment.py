@@ -52,8 +52,8 @@ MUST_SHARE = {
 }
 # The lines of train() that one script of a pair has and the other lacks (difflib, non-blank, non-comment lines): what
 # the variant changes, and no more. A ratio would loosen as train() shrinks; these are counts.
-# Table 4's log std schedule and KL-adaptive step size (issue 50) are 8 lines of ppo_continuous.py's train() alone.
-# Under torchrun (issue 53), Atari has no normalizers to merge after the rollout and films on rank 0 only (3 lines),
+# Table 4's log std schedule and KL-adaptive step size are 8 lines of ppo_continuous.py's train() alone.
+# Under torchrun, Atari has no normalizers to merge after the rollout and films on rank 0 only (3 lines),
 # and the KL penalty's batch KL is over every rank's share (1 line).
 TRAIN_DIFF = {("ppo_atari.py", "ppo_continuous.py"): 46 + 8 + 3, ("ppo_continuous.py", "ppo_kl_penalty.py"): 17 + 8 + 1}
 # The lesson first: the math, Algorithm 1 in train(), the network and the envs it uses; then, under one heading, what

@@ -440,7 +440,7 @@ def test_filming_with_the_tracking_camera_leaves_no_other_env_open(name, tmp_pat
 
 @pytest.mark.parametrize("script", ["ppo_continuous.py", "ppo_kl_penalty.py"])
 def test_the_progress_line_prints_a_dash_until_an_episode_ends(script, tmp_path):
-    """Issue 59: Pendulum's episodes last 200 steps, so after the first 64 no episode has ended: the first progress
+    """Pendulum's episodes last 200 steps, so after the first 64 no episode has ended: the first progress
     line says `return -`, not nan; the last, after 256 steps, a number."""
     flags = ["--env-id", "Pendulum-v1", "--num-steps", "64", "--minibatch-size", "64", "--update-epochs", "1"]
     out = run_cli(script, *flags, "--total-timesteps", "256", "--run-dir", "run", cwd=tmp_path).stdout

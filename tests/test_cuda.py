@@ -1,4 +1,4 @@
-"""The GPU path (issue 55): each script trains on --device cuda, a CUDA checkpoint evaluates and resumes on the CPU, and
+"""The GPU path: each script trains on --device cuda, a CUDA checkpoint evaluates and resumes on the CPU, and
 one update on CUDA is the CPU's, to float tolerance. Skipped where there is no CUDA, as in CI; run it where there is:
 
     python -m pytest tests/test_cuda.py

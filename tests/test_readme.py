@@ -14,7 +14,7 @@ from details import cited_details  # noqa: E402
 
 
 def test_readme_is_short():
-    # At most 270 (issue 59, which adds the flagrun tasks; 260 before): the long generated blocks live in
+    # At most 270 (260 before the flagrun tasks' line): the long generated blocks live in
     # benchmarks/README.md and the suites' reports, a link away.
     assert len(README.splitlines()) <= 270
 

@@ -549,7 +549,7 @@ def test_humanoid_report_has_both_metrics_the_published_figures_and_the_video(tm
 
 
 def test_roboschool_report_and_readme_give_scores_beside_figure_4_and_what_the_policies_do(tmp_path):
-    """Issue 59: the report's scores beside Figure 4's end points and its measures table; README.md's line of words
+    """The report's scores beside Figure 4's end points and its measures table; README.md's line of words
     with the flags reached and the get-ups, over the runs' episodes."""
     import roboschool_measures
 
@@ -679,7 +679,7 @@ def test_the_readmes_example_suite_is_one_entry_and_one_module(tmp_path, monkeyp
 
 @pytest.mark.parametrize("form", ["bon", "rl"])
 def test_gaos_forms_are_fitted_back_from_points_of_known_alpha_and_beta(form):
-    """Issue 54, item 3: fit_gao recovers alpha and beta from points on R(d) = d (alpha - beta d) or d (alpha - beta
+    """fit_gao recovers alpha and beta from points on R(d) = d (alpha - beta d) or d (alpha - beta
     log d), with noise, and its peak is where a fine grid of the true curve peaks."""
     import numpy as np
 
@@ -784,7 +784,7 @@ def test_the_fall_rule_still_calls_a_fall_of_the_size_seen_at_beta_0():
 
 
 def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from_them(tmp_path):
-    """Issue 54: on runs drawn from Gao et al.'s RL form with known alpha and beta per reward model size, and best-of-N
+    """On runs drawn from Gao et al.'s RL form with known alpha and beta per reward model size, and best-of-N
     points from its own form, the rlhf-long report fits both back per size, counts the beta-0 runs that pass their
     peak as over-optimized, and answers (a) a weaker RM peaks earlier and lower, (b) runs that stop early on the same
     curve lie on it, and (c) PPO lies below best-of-N, from those numbers; and draws its figure."""
@@ -838,7 +838,7 @@ def test_the_overoptimization_report_fits_gaos_forms_and_answers_the_claims_from
 
 
 def test_the_overoptimization_report_answers_whether_an_ensemble_peaks_later_and_higher_and_herds(tmp_path):
-    """Issue 60: single-RM runs drawn from Gao et al.'s RL form with d* 2.72, and 4-RM ensemble runs from one with
+    """Single-RM runs drawn from Gao et al.'s RL form with d* 2.72, and 4-RM ensemble runs from one with
     d* 4.06, higher, each past its peak: (d) the ensemble peaks later and higher than the same seed's single RM; (e)
     where every member's score keeps rising as gold falls, each fallen run herds, and the members' disagreement,
     tripled by the gold peak, rose first; with one member that turns down after the peak, that run does not herd."""

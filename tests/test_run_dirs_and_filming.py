@@ -1,5 +1,5 @@
 """Runs that start together never share a folder, and filming that cannot start stops the run in one line before it
-begins (issue 55). Both through the scripts' real command lines."""
+begins. Both through the scripts' real command lines."""
 
 import os
 import subprocess

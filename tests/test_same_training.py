@@ -1,4 +1,4 @@
-"""The scripts were rewritten for reading (issue 28), not for what they compute: for a fixed seed, each trains to
+"""The scripts were rewritten for reading, not for what they compute: for a fixed seed, each trains to
 bit-identical weights, normalization statistics, optimizer state, beta and RNG state as the same script at the
 reference commit, which produced the committed benchmark results. Short eager runs, through the real command line."""
 

@@ -66,7 +66,7 @@ def test_throughput_humanoid_case_measures_ours_sb3_and_the_envs_with_table4(cap
     assert sps > 0 and first > 0
     throughput.run_worker("env", "Humanoid-v5", 64, "humanoid")  # the 32 envs of ppo_continuous.py, alone
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["sps"] > 0
-    # The 2-rank case: the same train() in two processes under torchrun, timed by rank 0 (issue 53).
+    # The 2-rank case: the same train() in two processes under torchrun, timed by rank 0.
     sps, first = throughput.measure(
         "torchrun --nproc-per-node 2 ppo_continuous.py --num-steps 8 --minibatch-size 128",
         "Humanoid-v5",
@@ -112,7 +112,7 @@ def test_best_of_n_keeps_the_rm_favourite_of_n_with_its_analytic_kl(tmp_path):
 
 
 def test_best_of_ns_closed_form_kl_is_an_upper_bound_measured_by_enumeration():
-    """Issue 54, item 5: on a small discrete distribution, the KL of best-of-n counted over every n-tuple of draws is
+    """On a small discrete distribution, the KL of best-of-n counted over every n-tuple of draws is
     exact_kl's, at most log n - (n - 1) / n, and near it when no response has much mass."""
     import itertools
 

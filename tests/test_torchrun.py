@@ -1,4 +1,4 @@
-"""One run in many processes (issue 53): `torchrun --nproc-per-node P <script>` runs one Algorithm 1 in P ranks
+"""One run in many processes: `torchrun --nproc-per-node P <script>` runs one Algorithm 1 in P ranks
 over gloo, on this machine's CPUs. The update is the same math as one process's on the whole batch, the ranks end
 with the same weights, the run keeps one record, and stops, dead ranks, bad input, resumes and two nodes behave.
 Every test starts real processes: tests/ranks_worker.py under torchrun, or the scripts' own command line."""
@@ -129,11 +129,11 @@ def test_a_two_rank_run_ends_with_the_same_weights_on_both_ranks_and_one_record(
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert [r["exit"] for r in ranks] == [0, 0]
     assert_same_state(ranks[0]["agent"], ranks[1]["agent"])
-    # Issue 61: the KL that the step size's or beta's rule reads is the mean over all ranks, the same on each: a rank's
+    # The KL that the step size's or beta's rule reads is the mean over all ranks, the same on each: a rank's
     # own KL would give each rank its own step size or beta, and their weights would drift apart over the run.
     if script != "ppo_atari.py":
         assert len(ranks[0]["kls"]) >= 1 and ranks[0]["kls"] == ranks[1]["kls"], [r["kls"] for r in ranks]
-    # Issue 61: env i of the run is seeded as env i of one process, (seed + step) N + i, whichever rank steps it: ranks
+    # Env i of the run is seeded as env i of one process, (seed + step) N + i, whichever rank steps it: ranks
     # that seeded their envs as rank 0 does would start half of each batch from the same states.
     n_envs = int(flags[flags.index("--num-envs") + 1]) if "--num-envs" in flags else 1
     assert ranks[0]["seeds"][0] + ranks[1]["seeds"][0] == [1 * n_envs + i for i in range(n_envs)]
@@ -181,7 +181,7 @@ def test_ctrl_c_stops_every_rank_at_one_iteration_with_one_checkpoint(tmp_path):
 
 @pytest.mark.parametrize("script", GYM_SCRIPTS)
 def test_a_sigterm_to_one_rank_alone_stops_every_rank_at_one_iteration_with_one_checkpoint(script, tmp_path):
-    """Issue 61: a scheduler that preempts one machine signals its ranks only. The others stop with it, at the same
+    """A scheduler that preempts one machine signals its ranks only. The others stop with it, at the same
     iteration, and rank 0 saves: a rank that stopped on its own flag would leave the others to fail (rank 0 saving
     nothing since its last checkpoint)."""
     run_dir = tmp_path / "run"
@@ -357,7 +357,7 @@ def test_two_nodes_on_this_machine_run_one_run(tmp_path):
 
 @pytest.mark.parametrize("script", GYM_SCRIPTS)
 def test_compile_under_torchrun_is_refused_in_one_line_before_the_run(script, tmp_path):
-    """--compile is for one process (issue 59). Under torchrun the compiled update's graph holds the process group that
+    """--compile is for one process. Under torchrun the compiled update's graph holds the process group that
     its all-gather of the advantages uses, past destroy_process_group to the interpreter's exit, and gloo's threads with
     it: the state in which a finished rank can abort (the test of a two-rank run above checks that none is left)."""
     flags = tiny_flags(script, tmp_path, "--run-dir", str(tmp_path / "run"), "--compile")
