@@ -74,7 +74,7 @@ def test_throughput_humanoid_case_measures_ours_sb3_and_the_envs_with_table4(cap
         "humanoid",
     )
     assert sps > 0 and first > 0
-    pytest.importorskip("stable_baselines3")  # benchmarks/requirements.txt; CI installs only ray from it
+    pytest.importorskip("stable_baselines3")  # benchmarks/requirements.txt; .ci/run installs it
     tiny = dict(n_envs=32, n_steps=8, batch_size=128, n_epochs=1)
     sps, first = throughput.measure_sb3_ppo_mujoco("Humanoid-v5", 768, threads=1, **tiny)
     assert sps > 0 and first > 0
