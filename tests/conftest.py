@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -204,3 +205,75 @@ def fake_random(results, env_id, returns):
     lines = ["# command: test", "episode,episodic_return,episodic_length"]
     lines += [f"{i},{r},1" for i, r in enumerate(returns)]
     path.write_text("\n".join(lines) + "\n")
+
+
+# roboschool_humanoid.py's tasks, read from the simulator's own state by name (tests/test_roboschool_*.py and
+# tests/test_bullet_body.py), not through the module's helpers.
+TASKS = ["HumanoidForward", "HumanoidFlagrun", "HumanoidFlagrunHarder"]
+DT = 0.0165
+BODIES = "torso lwaist pelvis right_thigh right_shin right_foot left_thigh left_shin left_foot".split()
+BODIES += "right_upper_arm right_lower_arm left_upper_arm left_lower_arm".split()
+JOINTS = "abdomen_z abdomen_y abdomen_x right_hip_x right_hip_z right_hip_y right_knee left_hip_x left_hip_z".split()
+JOINTS += "left_hip_y left_knee right_shoulder1 right_shoulder2 right_elbow left_shoulder1 left_shoulder2".split()
+JOINTS += ["left_elbow"]
+# Where Bullet put the link of each body other than the torso: the centre of the body's last geom if it is a capsule
+# (by the geom's name), else the body's origin (the feet, and the lower arms whose last geom is the hand).
+PART_GEOMS = "lwaist butt right_thigh1 right_shin1 left_thigh1 left_shin1 right_uarm1 left_uarm1".split()
+PART_ORIGINS = "right_foot left_foot right_lower_arm left_lower_arm".split()
+ROW0 = np.array([0])  # an env's one body, as the rules' methods take their bodies: a row index array
+
+
+def make(task, seed=0):
+    import gymnasium as gym
+
+    sys.path.insert(0, str(ROOT))  # the module beside the scripts, by its id
+    env = gym.make(f"roboschool_humanoid:{task}-v0").unwrapped
+    env.reset(seed=seed)
+    return env
+
+
+def body_xy(env):
+    """The body's x, y: the mean of Roboschool's 29 parts, the 12 links (PART_GEOMS, PART_ORIGINS) and the 17 joints'
+    anchors, by name."""
+    data = env.data
+    parts = [data.geom(name).xpos for name in PART_GEOMS] + [data.body(name).xpos for name in PART_ORIGINS]
+    parts += [data.joint(name).xanchor for name in JOINTS]
+    return np.mean(parts, axis=0)[:2]
+
+
+def torso_z(env):
+    """The height of the torso's Bullet frame: the centre of its last geom, uwaist, 0.12 m below its origin."""
+    return env.data.geom("uwaist").xpos[2]
+
+
+def torso_velocity(env):
+    """The world velocity of the torso's Bullet frame, as MuJoCo computes it for the uwaist geom's centre."""
+    import mujoco
+
+    data = mujoco.MjData(env.model)
+    data.qpos[:], data.qvel[:] = env.data.qpos, env.data.qvel
+    mujoco.mj_forward(env.model, data)
+    velocity = np.zeros(6)  # angular, then linear
+    mujoco.mj_objectVelocity(env.model, data, mujoco.mjtObj.mjOBJ_GEOM, env.model.geom("uwaist").id, velocity, 0)
+    return velocity[3:]
+
+
+def stand(env, qpos):
+    """Put the body back where `qpos` has it, at rest, keeping the cube's state (the rules see a standing body)."""
+    data = env.data
+    n = 7 + len(JOINTS)
+    data.qpos[:n] = qpos[:n]
+    data.qvel[: n - 1] = 0.0
+    env.set_state(data.qpos.copy(), data.qvel.copy())
+
+
+def restart_potential(env):
+    """The potential of the state as it is now, as a step would have left it."""
+    env.bodies.humanoid_state(ROW0)
+    env.bodies.potential[0] = env.bodies.calc_potential(ROW0)[0]
+
+
+def step_from(env, qpos, qvel, action):
+    env.set_state(qpos, qvel)
+    restart_potential(env)
+    return env.step(action)
