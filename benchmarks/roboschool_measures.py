@@ -65,7 +65,12 @@ def play(checkpoint_path, episodes):
     import gymnasium as gym
 
     env_id, act, checkpoint_step = policy(checkpoint_path)
-    env = gym.make(env_id)
+    return play_policy(gym.make(env_id), act, episodes, checkpoint_step)
+
+
+def play_policy(env, act, episodes, checkpoint_step=""):
+    """One dict of FIELDS an episode of act(state) on `env` (a task's env, or one with the same infos), seeds
+    1..episodes; the env is closed at the end."""
     rows = []
     for seed in range(1, episodes + 1):
         obs, _ = env.reset(seed=seed)
