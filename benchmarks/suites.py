@@ -286,6 +286,23 @@ SUITES = {
         in_readme=True,
         keep_checkpoints={"50M": 50_003_968},  # the first checkpoint past the earlier rules' budget, for the measures
     ),
+    # The same tasks on the body measured against Bullet (benchmarks/bullet_body.py): no dampers and no armature,
+    # Bullet's masses, centres and inertias, the shoulders' and elbows' long axes emulated, stiffer joint limits, on
+    # which Roboschool's own agent gets up (benchmarks/zoo_agent.py). 100M steps for seed 1 of the flagrun tasks; the
+    # forward walk at --total-timesteps 50003968.
+    "roboschool-bullet": Suite(
+        {"table4": ("ppo_continuous.py", TABLE4), "table4-128": ("ppo_continuous.py", TABLE4_128)},
+        ROBOSCHOOL,
+        [1, 2, 3],
+        100_007_936,  # 1,526 batches of 128 x 512: the first whole batch past 100M steps
+        "ppo_continuous.py with Table 4 in 2 processes on roboschool_humanoid.py's tasks (128 actors for flagrun), on"
+        " the body measured against Bullet",
+        only={"table4": (ROBOSCHOOL[:1], [1, 2, 3]), "table4-128": (ROBOSCHOOL[1:], [1, 2, 3])},
+        ranks={"table4": 2, "table4-128": 2},
+        report="roboschool",
+        rules="the body measured against Bullet",
+        keep_checkpoints={"50M": 50_003_968},
+    ),
 }
 
 

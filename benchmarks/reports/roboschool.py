@@ -15,7 +15,7 @@ from suites import COLUMNS
 
 ORDER = 2  # beside the humanoid suite
 # A suite on Roboschool's body -> the suite of the same runs on the earlier rules, whose results the report sets beside.
-EARLIER = {"roboschool-body": "roboschool"}
+EARLIER = {"roboschool-body": "roboschool", "roboschool-bullet": "roboschool-body"}
 RULE = (
     "A run's score is the mean return of its last 100 episodes; a cell is the mean ± sample std over seeds, with the"
     " number of seeds in brackets. Rewards are Roboschool's (per step: +2 alive, progress toward the target in m/s,"
