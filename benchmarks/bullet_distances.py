@@ -11,6 +11,14 @@ lying on the front, lying on the back, and mid-stride, the states of Roboschool'
 180 steps toward a target ahead. The actions: that agent's own, recorded on Bullet from the same start (played to
 MuJoCo as a recording); uniform random in [-1, 1]; and bang-bang, each motor at +-1 at random. A trajectory on which
 MuJoCo reports an unstable step is counted, and left out of the means.
+
+Bullet does not repeat itself exactly from one world to the next, nor from one process to the next: the row "Bullet
+itself, in worlds of its own" is how far it moves from itself within one run, and from one run of this script to the
+next a row moves by up to about 0.02 rad at step 20. A setting earns its place in the module where it brings the
+joints nearer after 5 and 20 steps by more than that; after 60 steps Bullet has parted from itself by about 0.2 rad,
+and the two engines by chaos as much as by their physics. Bullet's own rows (its damping of every link's motion taken
+out, its clamp on joint speeds lifted) say how much those parts of Bullet move it; the row that adds that damping to
+MuJoCo, each physics step, says how much of it MuJoCo would recover.
 """
 
 from __future__ import annotations
@@ -25,12 +33,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bullet_body as bb  # noqa: E402
 from bullet_body import ROOT, State  # noqa: E402
 
+import results  # noqa: E402
+
 sys.path.insert(0, str(ROOT))
 import roboschool_humanoid as rh  # noqa: E402
 
 STEPS = (1, 5, 20, 60)
 SEEDS = (1, 2, 3)
 OUT = ROOT / "benchmarks" / "results" / "bullet" / "distances.md"
+BODY = ["roboschool_humanoid.py", "benchmarks/bullet_body.py", "benchmarks/bullet_distances.py"]  # what the table is of
+PACKAGES = ("numpy", "gymnasium", "mujoco", "pybullet")
 
 
 def hinges(spec):
@@ -179,6 +191,32 @@ class MuJoCoBody:
         return data.warning.number[rh.UNSTABLE].tolist() == before
 
 
+class DampedBody(MuJoCoBody):
+    """The module's body with btMultiBody's own damping: each physics step, every link is pushed back by its mass x
+    its velocity x (0.04 + 0.04 |velocity|), and turned back by its inertia x its spin x (0.04 + 0.04 |spin|)."""
+
+    damping = 0.04  # btMultiBody's m_linearDamping and m_angularDamping
+
+    def step(self, action):
+        import mujoco
+
+        model, data = self.model, self.bodies.datas[0]
+        data.ctrl[:] = np.clip(action, -1.0, 1.0)
+        bodies = [model.body(name).id for name in rh.BODIES]
+        velocity = np.zeros(6)  # spin, then velocity, at the centre of mass, in the world frame
+        before = data.warning.number[rh.UNSTABLE].tolist()
+        for _ in range(self.substeps):
+            for b in bodies:
+                mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, b, velocity, 0)
+                spin, linear = velocity[:3], velocity[3:]
+                turn = data.ximat[b].reshape(3, 3)
+                inertia = turn @ np.diag(model.body_inertia[b]) @ turn.T
+                data.xfrc_applied[b, :3] = -model.body_mass[b] * linear * self.damping * (1 + np.linalg.norm(linear))
+                data.xfrc_applied[b, 3:] = -inertia @ spin * self.damping * (1 + np.linalg.norm(spin))
+            mujoco.mj_step(model, data)
+        return data.warning.number[rh.UNSTABLE].tolist() == before
+
+
 def start(kind, seed):
     """A start as an episode's: joints uniform in +-0.1 rad, at rest, the torso standing or lying."""
     rng = np.random.default_rng(seed)
@@ -271,6 +309,8 @@ def main():
     rows = []
     names = args.settings or list(SETTINGS)
     engines = {name: MuJoCoBody(*SETTINGS[name]) for name in names}
+    if not args.settings:
+        engines["and btMultiBody's damping of every link, each physics step"] = DampedBody([], 4)
     if not args.settings:  # Bullet against itself: as it is, with its own damping off, or its velocity clamp lifted
         engines["Bullet itself, in worlds of its own"] = bullet_changed()
         engines["Bullet, no btMultiBody damping"] = bullet_changed(linearDamping=0.0, angularDamping=0.0)
@@ -284,7 +324,10 @@ def main():
         OUT.parent.mkdir(parents=True, exist_ok=True)
         header = "| setting | " + " | ".join(f"step {s}: joints (rad) / torso (m)" for s in STEPS) + " | unstable |"
         rule = "|" + "---|" * (len(STEPS) + 2)
-        OUT.write_text("\n".join([__doc__.split("\n")[0], "", header, rule, *rows]) + "\n")
+        about = [f"- Seeds {', '.join(map(str, SEEDS))} of each start; {len(pairs)} trajectories of {STEPS[-1]} steps."]
+        about += [f"- Commit {results.commit(BODY, '+')}; {results.versions(PACKAGES)}; {results.machine()}."]
+        about += ["- Command: `python benchmarks/bullet_distances.py`"]
+        OUT.write_text("\n".join([__doc__.split("\n")[0], "", header, rule, *rows, "", *about]) + "\n")
 
 
 if __name__ == "__main__":

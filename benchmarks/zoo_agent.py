@@ -25,11 +25,15 @@ import bullet_body as bb  # noqa: E402
 import roboschool_measures as measures  # noqa: E402
 from bullet_body import ROOT, State  # noqa: E402
 
+import results  # noqa: E402
+
 sys.path.insert(0, str(ROOT))
 import roboschool_humanoid as rh  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "results" / "bullet"
 ENGINES = {"mujoco": "this project's MuJoCo body", "bullet": "PyBullet 3.2.7"}
+BODY = ["roboschool_humanoid.py", "benchmarks/bullet_body.py", "benchmarks/zoo_agent.py"]  # what the measures are of
+PACKAGES = ("numpy", "gymnasium", "mujoco", "pybullet")
 
 
 class BulletFlagrunHarder:
@@ -123,11 +127,15 @@ def report():
     lines += ["| engine | episodes | steps an episode | flags an episode | speed toward the flag (m/s) | falls "]
     lines[-1] += "(knock-downs) an episode | up again, of the times down |"
     lines += ["|---|---|---|---|---|---|---|"]
+    about = []
     for engine, label in ENGINES.items():
         path = OUT / f"zoo_{engine}.csv"
         if not path.exists():
             continue
-        rows = list(csv.DictReader(open(path)))
+        with open(path) as f:
+            made = f.readline().removeprefix("# ").strip()  # the first line says what made the file
+            rows = list(csv.DictReader(f))
+        about.append(f"- {label}: {made}.")
         mean = {key: np.mean([float(r[key]) for r in rows]) for key in ("length", "flags", "speed_to_flag", "falls")}
         knocks = np.mean([float(r["knockdowns"]) for r in rows])
         downs = sum(int(r["falls"]) + int(r["started_down"]) for r in rows)
@@ -136,6 +144,8 @@ def report():
         cells += [f"{mean['falls']:.2f} ({knocks:.2f})", f"{ups} of {downs} ({100 * ups / max(downs, 1):.0f}%)"]
         lines.append("| " + " | ".join(map(str, cells)) + " |")
     lines += ["", "The agent acts deterministically; an episode ends at 1,000 steps or after 170 steps on the ground."]
+    lines += ["Seeds 1, 2, ... on each engine; a time down is a fall or a start on the ground.", "", *about]
+    lines += ["- Command: `python benchmarks/zoo_agent.py`"]
     (OUT / "zoo.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -151,7 +161,13 @@ def main():
     if not args.report:
         for engine in args.engines:
             rows = measures.play_policy(make(engine), bb.zoo_agent(), args.episodes)
-            measures.write(OUT / f"zoo_{engine}.csv", rows)
+            made = f"commit {results.commit(BODY, '+')}; {results.versions(PACKAGES)}; {results.machine()}"
+            OUT.mkdir(parents=True, exist_ok=True)
+            with open(OUT / f"zoo_{engine}.csv", "w", newline="") as f:
+                f.write(f"# {made}\n")
+                writer = csv.DictWriter(f, measures.FIELDS)
+                writer.writeheader()
+                writer.writerows(rows)
             print(f"{engine}: {measures.summary(rows)}", flush=True)
     report()
 
