@@ -9,8 +9,7 @@ This module rebuilds them on MuJoCo with that commit's rules and body, and regis
     torchrun --standalone --nproc-per-node 2 ppo_continuous.py --env-id roboschool_humanoid:HumanoidFlagrunHarder-v0
 
 Each id has its own vector env, which ppo_continuous.py takes through gym.make_vec: the rules computed once over N
-bodies of one model, each in its own MjData, with the same episodes as N single envs of the same seeds. A single env
-is the case N = 1 of the same code.
+bodies of one model, each in its own MjData, with the same episodes as N single envs of the same seeds (one: N = 1).
 
 The body is humanoid_symmetric.xml as Roboschool's Bullet read and moved it, made with MjSpec from gymnasium's
 humanoid.xml and measured against PyBullet 3.2.7, which loads the same file (benchmarks/bullet_body.py): friction 0.8,
@@ -66,7 +65,7 @@ MOTORS += [("left_hip_x", 100), ("left_hip_z", 100), ("left_hip_y", 300), ("left
 MOTORS += [("right_shoulder1", 75), ("right_shoulder2", 75), ("right_elbow", 75)]
 MOTORS += [("left_shoulder1", 75), ("left_shoulder2", 75), ("left_elbow", 75)]
 POWER = 0.41
-LIMIT_TIME_CONSTANT = 0.01  # s: a joint limit's stiffness (MuJoCo's default 0.02)
+STIFF = [0.01, 1.0]  # joint limits' and contacts' time constant (s) and damping ratio (MuJoCo's default: 0.02, 1)
 # Bullet's inertia of each body (kg m^2, about its centre of mass, on the body's axes), the box its importer put around
 # the body's geoms, as PyBullet 3.2.7 reports it (tests/test_bullet_body.py checks these against it).
 BULLET_INERTIA = dict(torso=(0.281773, 0.221499, 0.132127), lwaist=(0.0135717, 0.00542867, 0.0135717))
@@ -131,7 +130,8 @@ def humanoid_spec(cube):
     if cube:  # Roboschool's cube.urdf: a 0.1 m box of 0.6 kg, resting at (-1.5, 0) until it is thrown
         body = spec.worldbody.add_body(name="cube", pos=[-1.5, 0.0, 0.05])
         body.add_freejoint(name="cube")
-        body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.05] * 3, mass=0.6, rgba=[1.0, 0.6, 0.1, 1.0])
+        box = dict(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.05] * 3, mass=0.6, solref=STIFF)
+        body.add_geom(rgba=[1.0, 0.6, 0.1, 1.0], **box)
     return spec
 
 
@@ -144,11 +144,13 @@ def bullet_body(spec):
       its angle moves at u, so that a motor moves |a|^2 times the inertia, and outside forces act |a| times as much.
       The motor's gear divided by |a| (MOTORS' loop) and an armature of |a| - 1 times the inertia about the axis that
       the free torso does not take up (at the xml's pose) match both, for the shoulders and elbows (|a| = 2^0.5, 6^0.5);
-    - joint limits as stiff as MuJoCo's step keeps stable, nearer Bullet's hard ones than MuJoCo's default."""
+    - joint limits and contacts as stiff as MuJoCo's step keeps stable, nearer Bullet's hard ones than its default."""
     hinges = [joint for joint in spec.joints if joint.type == mujoco.mjtJoint.mjJNT_HINGE]
     for joint in hinges:
         joint.stiffness[:] = joint.damping[:] = joint.armature = 0.0
-        joint.solref_limit = [LIMIT_TIME_CONSTANT, 1.0]
+        joint.solref_limit = STIFF
+    for geom in spec.geoms:
+        geom.solref = STIFF
     geoms = spec.compile()  # the masses of the bodies' geoms
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_AUTO  # where a body states its own
     for name in BODIES:

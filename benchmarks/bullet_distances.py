@@ -135,7 +135,7 @@ def integrator(name):
     return change
 
 
-EARLIER = [damping(0.5), unit_axes, gymnasium_armature, geoms_inertia, limits(0.02)]
+EARLIER = [damping(0.5), unit_axes, gymnasium_armature, geoms_inertia, limits(0.02), contacts(0.02)]
 # Each setting: its changes to the module's spec, and its physics steps a step (the module's: 4). The module's body
 # first, then each of its choices taken back one at a time, then the earlier body, then what else might help.
 SETTINGS = {
@@ -147,11 +147,14 @@ SETTINGS = {
     "with unit axes and gymnasium's armature": ([unit_axes, gymnasium_armature], 4),
     "with the geoms' inertia": ([geoms_inertia], 4),
     "with MuJoCo's default limits (0.02 s)": ([limits(0.02)], 4),
-    "the earlier body (damper 0.5, unit axes, gymnasium's armature, the geoms' inertia, limits 0.02 s)": (EARLIER, 4),
+    "with MuJoCo's default contacts (0.02 s)": ([contacts(0.02)], 4),
+    "the earlier body (damper 0.5, unit axes, gymnasium's armature, the geoms' inertia, limits and contacts 0.02 s)": (
+        EARLIER,
+        4,
+    ),
     "and 8 physics steps a step": ([], 8),
-    "and limits of 0.005 s, 8 physics steps": ([limits(0.005)], 8),
+    "and limits and contacts of 0.005 s, 8 physics steps": ([limits(0.005), contacts(0.005)], 8),
     "and friction 0.64": ([friction(0.64)], 4),
-    "and contacts of 0.01 s": ([contacts(0.01)], 4),
     "and Euler's integrator": ([integrator("EULER")], 4),
     "and RK4": ([integrator("RK4")], 4),
 }
