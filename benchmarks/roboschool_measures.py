@@ -3,6 +3,7 @@ flag, and, for FlagrunHarder, falls, the cube's knock-downs, and the share of ti
 
     python benchmarks/roboschool_measures.py                            # each run of the suite at its budget
     python benchmarks/roboschool_measures.py --suite roboschool-body    # Roboschool's body, at 100M and at 50M
+    python benchmarks/roboschool_measures.py --suite roboschool-bullet  # the body measured against Bullet
     python benchmarks/roboschool_measures.py --total-timesteps 10027008 # the 10M pilots and seeds
     python benchmarks/roboschool_measures.py --checkpoint runs/x/checkpoint.pt   # any run's, printed only
     python benchmarks/roboschool_measures.py --total-timesteps 10027008 --film  # and film each run
@@ -225,7 +226,7 @@ def summary(rows):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--suite", default="roboschool", help="roboschool (the earlier rules) or roboschool-body")
+    parser.add_argument("--suite", default="roboschool", help="roboschool, roboschool-body or roboschool-bullet")
     parser.add_argument("--total-timesteps", type=int, help="the suite's budget whose runs to measure (its default)")
     parser.add_argument("--checkpoint", type=Path, help="measure this checkpoint only, and print it")
     parser.add_argument("--episodes", type=int, default=30, help="deterministic episodes per run (env seeds 1, 2, ...)")
