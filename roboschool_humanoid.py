@@ -43,8 +43,8 @@ Where ours differs from Roboschool, judge the comparison with Figure 4 by these:
 - The engine: MuJoCo (implicitfast and Newton) against Bullet's multibody: contacts, joint limits and friction (Bullet
   multiplies two 0.8s into 0.64; MuJoCo takes the larger) act differently, the shoulders' and elbows' long axes are
   emulated, not reproduced, and Bullet's damping of each link's own motion is left out (with it MuJoCo comes no
-  nearer). From the same states under the same actions, the joints part by an rms of 0.07 rad after 5 steps and 0.41
-  after 20 (the earlier body's: 0.47 and 0.76; Bullet's from itself: 0 and 0.02), the torso by 0.01 m and 0.1 m
+  nearer). From the same states under the same actions, the joints part by an rms of 0.07 rad after 5 steps and 0.38
+  after 20 (the earlier body's: 0.46 and 0.76; Bullet's from itself: 0 and 0.01), the torso by 0.01 m and 0.09 m
   (benchmarks/results/bullet/distances.md). A step MuJoCo finds unstable ends the episode as a fall.
 - Random numbers come from gymnasium's generator, so no episode is Roboschool's, draw for draw. The flag is a marker.
 """
