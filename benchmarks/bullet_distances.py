@@ -1,5 +1,7 @@
-"""How far roboschool_humanoid.py's MuJoCo body moves from Bullet's (bullet_body.py) under the same actions, for each
-setting that might bring the two closer: the table in results/bullet/distances.md.
+"""How far roboschool_humanoid.py's MuJoCo body moves from Bullet's under the same actions, setting by setting.
+
+Bullet's body is bullet_body.py's; each setting is one that might bring the two closer. The table goes to
+results/bullet/distances.md.
 
     python benchmarks/bullet_distances.py               # every setting (a few minutes), the table regenerated
     python benchmarks/bullet_distances.py --settings module no-damping   # some of them, printed only
