@@ -15,8 +15,7 @@ uwaist), its orientation, its velocity and spin in the world frame, and the 17 j
 `BulletBody.observe` computes Roboschool's 44 numbers from Bullet's links as Roboschool's calc_state did, so that
 tests/test_bullet_body.py can check that roboschool_humanoid.py reads the same state the same way. The tasks
 themselves stay on MuJoCo; `set_mujoco` and `get_mujoco` put a `State` into, and read it out of, one of its bodies.
-
-    python benchmarks/bullet_body.py     # Roboschool's agent for 3 episodes on Bullet: steps and times down
+bullet_distances.py and zoo_agent.py measure the two engines with it.
 """
 
 from __future__ import annotations
