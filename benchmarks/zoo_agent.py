@@ -144,7 +144,9 @@ def report():
         cells += [f"{mean['falls']:.2f} ({knocks:.2f})", f"{ups} of {downs} ({100 * ups / max(downs, 1):.0f}%)"]
         lines.append("| " + " | ".join(map(str, cells)) + " |")
     lines += ["", "The agent acts deterministically; an episode ends at 1,000 steps or after 170 steps on the ground."]
-    lines += ["Seeds 1, 2, ... on each engine; a time down is a fall or a start on the ground.", "", *about]
+    lines += ["Seeds 1, 2, ... on each engine; a time down is a fall or a start on the ground. Bullet does not repeat"]
+    lines[-1] += " itself from one process to the next, so its row changes from one run of the command to another."
+    lines += ["", *about]
     lines += ["- Command: `python benchmarks/zoo_agent.py`"]
     (OUT / "zoo.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
