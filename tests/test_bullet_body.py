@@ -147,11 +147,14 @@ def test_bullets_flagrun_harder_starts_where_ours_does():
 
 
 def test_roboschools_agent_gets_up_on_our_body():
-    """The agent Roboschool trained on its own Bullet body, on ours, from starts that lie on the ground and falls: it
-    is up again after most of the times it is down, and its episodes run long. On the earlier body (a damper on every
-    joint, unit axes, the geoms' inertias) it got up 3 times of 23 in 20 episodes of 226 steps."""
-    rows = measures.play_policy(zoo_agent.make("mujoco"), bb.zoo_agent(), episodes=4)
+    """The agent Roboschool trained on its own Bullet body, on ours, for 8 episodes from starts that lie on the ground
+    and falls: it is up again after most of the times it is down, and its episodes run long. Over 50 episodes it got
+    up 85% of the times and ran 785 steps an episode (benchmarks/results/bullet/zoo.md), and no 8 in a row fell below
+    81% and 675 steps; on the earlier body (a damper on every joint, unit axes, the geoms' inertia) it got up 3 times of
+    23 in 20 episodes of 226 steps. The bounds sit between the two, so that a float's difference from one machine to
+    another, which sends an episode elsewhere, cannot fail the test."""
+    rows = measures.play_policy(zoo_agent.make("mujoco"), bb.zoo_agent(), episodes=8)
     downs = sum(row["falls"] + row["started_down"] for row in rows)
     ups = sum(row["getups"] for row in rows)
-    assert downs >= 4 and ups >= 0.75 * downs, (ups, downs)
-    assert np.mean([row["length"] for row in rows]) >= 600
+    assert downs >= 8 and ups >= 0.6 * downs, (ups, downs)
+    assert np.mean([row["length"] for row in rows]) >= 450
