@@ -119,6 +119,7 @@ def test_main_owns_the_process_and_turns_ctrl_c_into_the_stop_flag(script, tmp_p
     monkeypatch.setattr(module, "train", train)
     monkeypatch.setattr(module, "check_args", lambda args: None)
     monkeypatch.setattr(sys, "argv", [script, "--torch-threads", "3"])
+    monkeypatch.chdir(tmp_path)  # main() names the run's folder under runs/ in the working directory
     before = process_state()
     try:
         with pytest.raises(SystemExit) as stopped:
