@@ -162,13 +162,13 @@ def train(args, stop=()):
     device = pick_device(args.device)
     T, N = args.num_steps, args.num_envs
     rank, world_size = rank_and_size()
-    n = N // world_size  # torchrun: this rank steps envs rank n, ..., rank n + n - 1 of the N
+    N_rank = N // world_size  # torchrun: each rank steps its share of the N envs, from env rank x N_rank on
     num_iterations = args.total_timesteps // (N * T)
     compiled_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else None  # --compile: backward too
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
     # On --resume, purge_step drops what the run logged after its checkpoint.
     with (
-        contextlib.closing(make_envs(args, n)) as envs,
+        contextlib.closing(make_envs(args, N_rank)) as envs,
         open_writer(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
     ):
         agent = Agent(envs.single_action_space.n).to(device)
@@ -183,16 +183,20 @@ def train(args, stop=()):
         if rank > 0:  # torchrun: the ranks made the same weights; rank r > 0 then draws from a stream of its own
             torch.manual_seed(int(np.random.SeedSequence([args.seed, rank, global_step]).generate_state(1)[0]))
 
-        # The rollout buffer: T steps of this rank's n envs, a tensor for each quantity, each one in the update's batch.
-        scalars = "logprobs rewards values terminations truncations final_values".split()  # one number a step and env
-        buf = SimpleNamespace(**{name: torch.zeros((T, n), device=device) for name in scalars})
-        buf.obs = torch.zeros((T, n, 4, 84, 84), dtype=torch.uint8, device=device)  # uint8 until the network
-        buf.actions = torch.zeros((T, n), dtype=torch.long, device=device)
+        buf = SimpleNamespace()  # the rollout buffer, T steps of this rank's envs: buf.obs is the update's mb["obs"]
+        buf.obs = torch.zeros((T, N_rank, 4, 84, 84), dtype=torch.uint8, device=device)  # uint8 until the network
+        buf.actions = torch.zeros((T, N_rank), dtype=torch.long, device=device)
+        buf.logprobs = torch.zeros((T, N_rank), device=device)
+        buf.values = torch.zeros((T, N_rank), device=device)
+        buf.terminations = torch.zeros((T, N_rank), device=device)
+        buf.truncations = torch.zeros((T, N_rank), device=device)
+        buf.rewards = torch.zeros((T, N_rank), device=device)
+        buf.final_values = torch.zeros((T, N_rank), device=device)  # V of the final observation, where a time limit cut
         # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
-        next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + rank * n + np.arange(n))
+        next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + rank * N_rank + np.arange(N_rank))
         next_obs = torch.as_tensor(next_obs, device=device)
         frame_numbers = infos["episode_frame_number"]
-        lost_life = np.zeros(n, dtype=bool)
+        lost_life = np.zeros(N_rank, dtype=bool)
         video = GameVideo(args.env_id, run_dir, frame_numbers[0], film=args.capture_video and rank == 0)
         action_names = [a.name for a in envs.ale.get_action_set()]
         fire = action_names.index("FIRE") if args.fire_on_life_loss and "FIRE" in action_names else None
@@ -243,7 +247,7 @@ def train(args, stop=()):
             update_stats = []
             for _epoch in range(args.update_epochs):
                 # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches (1/P of each per rank).
-                for mb_inds in torch.randperm(n * T, device=device).split(args.minibatch_size // world_size):
+                for mb_inds in torch.randperm(N_rank * T, device=device).split(args.minibatch_size // world_size):
                     loss, stats = (compiled_loss or minibatch_loss)(agent, batch, mb_inds, epsilon, args)
                     optimizer.zero_grad()
                     loss.backward()

@@ -75,7 +75,7 @@ class Args:
     adaptive_beta: bool = True
     clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef (core detail 9; not in eq. (9))
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
-    vf_coef: float = 0.25  # c1 of eq. (9); with separate networks it acts only through the gradient clip
+    vf_coef: float = 0.25  # c1 of eq. (9), CleanRL's 0.5 on half the squared error; felt only in the gradient clip
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
     norm_obs: bool = True  # normalize observations with running statistics (continuous details 6-7)
@@ -190,7 +190,7 @@ def train(args, stop=()):
     device = pick_device(args.device)
     T, N = args.num_steps, args.num_envs
     rank, world_size = rank_and_size()
-    n = N // world_size  # torchrun: this rank steps envs rank n, ..., rank n + n - 1 of the N
+    N_rank = N // world_size  # torchrun: each rank steps its share of the N envs, from env rank x N_rank on
     num_iterations = args.total_timesteps // (N * T)
     compiled_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else None  # --compile: backward too
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
@@ -214,13 +214,17 @@ def train(args, stop=()):
         if rank > 0:  # torchrun: the ranks made the same weights; rank r > 0 then draws from a stream of its own
             torch.manual_seed(int(np.random.SeedSequence([args.seed, rank, global_step]).generate_state(1)[0]))
 
-        # The rollout buffer: T steps of this rank's n envs, a tensor for each quantity, each one in the update's batch.
-        scalars = "logprobs rewards values terminations truncations final_values".split()  # one number a step and env
-        buf = SimpleNamespace(**{name: torch.zeros((T, n), device=device) for name in scalars})
-        buf.obs = torch.zeros((T, n, obs_dim), device=device)  # normalized: the network's inputs
-        buf.actions = torch.zeros((T, n, act_dim), device=device)
+        buf = SimpleNamespace()  # the rollout buffer, T steps of this rank's envs: buf.obs is the update's mb["obs"]
+        buf.obs = torch.zeros((T, N_rank, obs_dim), device=device)  # normalized: the network's inputs
+        buf.actions = torch.zeros((T, N_rank, act_dim), device=device)
+        buf.logprobs = torch.zeros((T, N_rank), device=device)
+        buf.values = torch.zeros((T, N_rank), device=device)
+        buf.terminations = torch.zeros((T, N_rank), device=device)
+        buf.truncations = torch.zeros((T, N_rank), device=device)
+        buf.rewards = torch.zeros((T, N_rank), device=device)
+        buf.final_values = torch.zeros((T, N_rank), device=device)  # V of the final observation, where a time limit cut
         # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
-        next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + rank * n + np.arange(n)).tolist())
+        next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + rank * N_rank + np.arange(N_rank)).tolist())
         next_obs = torch.as_tensor(agent.normalize_obs(next_obs, update=True), device=device)
         log = Log(writer, args, global_step, num_iterations * N * T)
 
@@ -269,7 +273,7 @@ def train(args, stop=()):
             update_stats = []
             for _epoch in range(args.update_epochs):
                 # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches (1/P of each per rank).
-                for mb_inds in torch.randperm(n * T, device=device).split(args.minibatch_size // world_size):
+                for mb_inds in torch.randperm(N_rank * T, device=device).split(args.minibatch_size // world_size):
                     loss, stats = (compiled_loss or minibatch_loss)(agent, batch, mb_inds, args, old_logstd, beta_t)
                     optimizer.zero_grad()
                     loss.backward()
@@ -441,15 +445,15 @@ def make_envs(args, video_dir, video_prefix):
     import gymnasium as gym
 
     rank, world_size = rank_and_size()
-    n = args.num_envs // world_size  # torchrun: this rank's envs are rank n, ..., rank n + n - 1 of the N
+    N_rank = args.num_envs // world_size  # torchrun: this rank's share of the N envs, from env rank x N_rank on
     module, _, env_name = args.env_id.rpartition(":")
     if module:  # a module:id, whose module registers the id
         importlib.import_module(module)
     if gym.spec(env_name).vector_entry_point and not args.capture_video:  # the env's own N-env implementation, with
-        return gym.make_vec(args.env_id, n, vectorization_mode="vector_entry_point")  # the same episodes as N envs'
+        return gym.make_vec(args.env_id, N_rank, vectorization_mode="vector_entry_point")  # the episodes of N envs
     env_fns = [
         lambda i=i: make_env(args.env_id, args.capture_video and i == 0, video_dir, video_prefix)
-        for i in range(rank * n, rank * n + n)
+        for i in range(rank * N_rank, rank * N_rank + N_rank)
     ]
     return gym.vector.SyncVectorEnv(env_fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
 

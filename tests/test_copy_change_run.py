@@ -191,7 +191,7 @@ def test_a_new_rollout_quantity_is_one_line_of_storage(script, tmp_path, monkeyp
         script,
         tmp_path / "one_more.py",
         after="buf.actions = torch.zeros(",
-        insert=("buf.step_number = torch.zeros((T, n), device=device)"),
+        insert=("buf.step_number = torch.zeros((T, N_rank), device=device)"),
     )
     path.write_text(
         path.read_text().replace(

@@ -144,10 +144,11 @@ def test_train_has_no_process_settings_to_undo():
 # The budgets set when the scripts were rewritten for reading, after `ruff format`, comments included: lines, code
 # characters (comments, docstrings and blank lines left out, leading spaces stripped) and the lines of train().
 # ppo_rlhf.py has a line budget only. --track and the PEP 723 block moved each line budget by 15, and Table 4's flags
-# ppo_continuous.py's by 25.
+# ppo_continuous.py's by 25. The rollout buffer's fields, declared one a line, moved the train() budgets of
+# ppo_continuous.py and ppo_atari.py by the 4 lines they added.
 BUDGETS = {
-    "ppo_continuous.py": {"lines": 590, "code_chars": 16_500, "train": 120},
-    "ppo_atari.py": {"lines": 585, "code_chars": 17_500, "train": 120},
+    "ppo_continuous.py": {"lines": 590, "code_chars": 16_500, "train": 123},
+    "ppo_atari.py": {"lines": 585, "code_chars": 17_500, "train": 124},
     "ppo_kl_penalty.py": {"lines": 615, "code_chars": 17_800, "train": 135},
     "ppo_rlhf.py": {"lines": 715},  # and PPO's successors, with the hack named, moved it by 80
 }
@@ -209,12 +210,13 @@ REACHED = {
     # declared, a flag typed with --resume is applied or refused, a checkpoint with a field Args lost is refused, a
     # renamed copy reads its own checkpoints, any env that renders can be filmed, a rollout quantity is one line (the
     # lines held; about 500 characters a script)
-    ("ppo_continuous.py", "lines"): 762,
-    ("ppo_continuous.py", "code_chars"): 24_270,
-    ("ppo_atari.py", "lines"): 705,
-    ("ppo_atari.py", "code_chars"): 22_561,
-    ("ppo_kl_penalty.py", "lines"): 776,
-    ("ppo_kl_penalty.py", "code_chars"): 24_627,
+    # a copy's own network, loss term and flags: the rollout buffer's fields one a line (4 lines)
+    ("ppo_continuous.py", "lines"): 766,
+    ("ppo_continuous.py", "code_chars"): 24_512,
+    ("ppo_atari.py", "lines"): 708,
+    ("ppo_atari.py", "code_chars"): 22_788,
+    ("ppo_kl_penalty.py", "lines"): 780,
+    ("ppo_kl_penalty.py", "code_chars"): 24_869,
 }
 NOT_MET = set(REACHED)
 CASES = [
