@@ -143,12 +143,13 @@ def minibatch_loss(agent, batch, mb_inds, args):
     v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
     entropy = probs.entropy().mean()
     loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
-    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy, "loss": loss}
+    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy}  # each logged as losses/<name>
     # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
     stats["old_approx_kl"] = (-logratio).mean()
     stats["approx_kl"] = ((ratio - 1) - logratio).mean()
     stats["clipfrac"] = ((ratio - 1.0).abs() > args.clip_coef).float().mean()
-    return loss, {name: stat.detach() for name, stat in stats.items()}
+    # train() reads "approx_kl" (--lr-target-kl) and "loss", the loss returned: a term added above is checked and logged
+    return loss, {name: stat.detach() for name, stat in (stats | {"loss": loss}).items()}
 
 
 def linear_anneal(start, end, fraction):

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli, train_tiny
+from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli, tb_scalars, train_tiny
 
 GYM_SCRIPTS = ["ppo_continuous.py", "ppo_atari.py", "ppo_kl_penalty.py"]
 MUJOCO_SCRIPTS = ["ppo_continuous.py", "ppo_kl_penalty.py"]
@@ -208,19 +208,25 @@ def test_a_new_rollout_quantity_is_one_line_of_storage(script, tmp_path, monkeyp
         return real(agent, batch, mb_inds, *rest)
 
     monkeypatch.setattr(module, "minibatch_loss", recording)
-    cfg = TINY[script]
-    args = module.Args(env_id=cfg["env_id"], run_dir=str(tmp_path / "run"), torch_threads=1)
-    flags = dict(zip(cfg["tiny"][::2], cfg["tiny"][1::2], strict=True))
-    for flag, value in flags.items():
-        field = flag[2:].replace("-", "_")
-        setattr(args, field, type(getattr(args, field))(value))
-    args.total_timesteps = args.num_envs * args.num_steps  # one iteration
+    args = one_iteration(module, script, tmp_path / "run")
     module.train(args)
     steps = torch.cat([s for s, _ in seen])
     n = args.num_envs
     assert sorted(steps.tolist()) == sorted(
         [float(t) for t in range(args.num_steps) for _ in range(n)] * args.update_epochs
     )
+
+
+def one_iteration(module, script, run_dir):
+    """The Args of one iteration of a script's TINY run, written to run_dir, for its train() in this process."""
+    cfg = TINY[script]
+    args = module.Args(env_id=cfg["env_id"], run_dir=str(run_dir), torch_threads=1)
+    flags = dict(zip(cfg["tiny"][::2], cfg["tiny"][1::2], strict=True))
+    for flag, value in flags.items():
+        field = flag[2:].replace("-", "_")
+        setattr(args, field, type(getattr(args, field))(value))
+    args.total_timesteps = args.num_envs * args.num_steps
+    return args
 
 
 def load_script_at(path):
@@ -231,3 +237,22 @@ def load_script_at(path):
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_term_added_to_the_loss_is_in_the_finite_check_and_in_the_logged_loss(script, tmp_path):
+    """A learner adds a term to the loss at the end of minibatch_loss: the loss logged is the loss minimized, and a
+    term that is not finite stops the run, though the gradient (of a constant) leaves the weights finite."""
+    path = copy_of(script, tmp_path / "aux.py", after='stats["clipfrac"] = ', insert="loss = loss + EXTRA")
+    module = load_script_at(path)
+    module.EXTRA = 1000.0
+    args = one_iteration(module, script, tmp_path / "logged")
+    module.train(args)
+    scalars = {tag: values[0][1] for tag, values in tb_scalars(tmp_path / "logged").items()}
+    terms = scalars["losses/policy_loss"] - args.ent_coef * scalars["losses/entropy"]
+    terms += args.vf_coef * scalars["losses/value_loss"]
+    assert scalars["losses/loss"] == pytest.approx(terms + 1000.0, abs=1e-3)
+    module.EXTRA = float("inf")
+    args.run_dir = str(tmp_path / "checked")
+    with pytest.raises(module.Diverged, match="not finite after iteration 1"):
+        module.train(args)

@@ -210,13 +210,14 @@ REACHED = {
     # declared, a flag typed with --resume is applied or refused, a checkpoint with a field Args lost is refused, a
     # renamed copy reads its own checkpoints, any env that renders can be filmed, a rollout quantity is one line (the
     # lines held; about 500 characters a script)
-    # a copy's own network, loss term and flags: the rollout buffer's fields one a line (4 lines)
-    ("ppo_continuous.py", "lines"): 766,
-    ("ppo_continuous.py", "code_chars"): 24_512,
-    ("ppo_atari.py", "lines"): 708,
-    ("ppo_atari.py", "code_chars"): 22_788,
-    ("ppo_kl_penalty.py", "lines"): 780,
-    ("ppo_kl_penalty.py", "code_chars"): 24_869,
+    # a copy's own network, loss term and flags: the rollout buffer's fields one a line (4 lines), the keys of the
+    # stats that train() reads (1)
+    ("ppo_continuous.py", "lines"): 767,
+    ("ppo_continuous.py", "code_chars"): 24_517,
+    ("ppo_atari.py", "lines"): 709,
+    ("ppo_atari.py", "code_chars"): 22_793,
+    ("ppo_kl_penalty.py", "lines"): 781,
+    ("ppo_kl_penalty.py", "code_chars"): 24_874,
 }
 NOT_MET = set(REACHED)
 CASES = [
