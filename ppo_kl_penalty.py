@@ -303,7 +303,7 @@ def train(args, stop=()):
 
             # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
             if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
-                raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
+                raise Diverged(f"loss or weights not finite after iteration {iteration}")
             stopping = bool(all_ranks(torch.tensor([bool(stop)])).any())  # torchrun: all stop at one iteration
             if stopping or iteration % args.save_every == 0 or iteration == num_iterations:
                 writer.flush()  # the curve on disk reaches at least the checkpoint's step
@@ -764,8 +764,8 @@ def main():
     except Stopped as e:
         print(e)
         sys.exit(130)
-    except Diverged as e:
-        print(f"{SCRIPT}: error: {e}", file=sys.stderr)
+    except Diverged as e:  # the advice is main()'s, where the flags are: --resume keeps every hyperparameter
+        print(f"{SCRIPT}: error: {e}: start a new run with a smaller --learning-rate", file=sys.stderr)
         sys.exit(1)
     except RuntimeError as e:  # torchrun: another rank died (gloo's or nccl's error), and this one ends in one line
         if not (dist.is_initialized() and (isinstance(e, dist.DistError) or "gloo" in str(e))):

@@ -594,7 +594,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
 
         # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
         if not (math.isfinite(scalars["losses/loss"]) and all(p.isfinite().all() for p in agent.parameters())):
-            raise Diverged(f"loss or weights not finite after iteration {iteration}; try a smaller --learning-rate")
+            advice = "start a new run with a smaller --learning-rate (--resume keeps every hyperparameter)"
+            raise Diverged(f"loss or weights not finite after iteration {iteration}; {advice}")
         if save or stop:
             state = dict(agent=agent.state_dict(), optimizer=optimizer.state_dict(), reference=reference.state_dict())
             state |= dict(reward_model=reward_model.state_dict(), rm_pool=log.pool, kl_coef=kl_coef)
