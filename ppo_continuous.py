@@ -571,9 +571,10 @@ class Log:
             print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean} | ETA {eta:.1f} min", flush=True)
 
 
-# A resumed run keeps its checkpoint's hyperparameters: only how it runs may change. A checkpoint names this script as
-# it was published, so that a renamed copy resumes its own.
+# Typed with --resume, a runtime flag (how the run goes on, where it logs) applies; any other field of Args is a
+# hyperparameter, and refused. A checkpoint names this script as it was published: a renamed copy resumes its own.
 RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
+RUNTIME_FIELDS += "run_dir exp_name track wandb_project_name wandb_entity".split()
 FORMAT = "ppo-checkpoint-v1"
 WRITER = "ppo_continuous.py"
 
@@ -600,9 +601,9 @@ def load_checkpoint(path, args):
         raise ValueError(f"{path!r} is not a checkpoint written by {WRITER} or a copy of it")
     unknown = set(checkpoint["args"]) - set(asdict(args))  # a field renamed or removed since the checkpoint
     if unknown:
-        raise ValueError(f"{path!r} holds hyperparameters that Args no longer has: {sorted(unknown)}")
+        raise ValueError(f"{path!r} holds hyperparameters that this script's Args lacks: {sorted(unknown)}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
-    run_dir = os.path.dirname(os.path.abspath(path))
+    run_dir = args.run_dir or os.path.dirname(os.path.abspath(path))  # by default, the checkpoint's folder
     return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
 
 

@@ -839,8 +839,9 @@ def response_stats(batch, pool):
     return {f"rlhf/{name}": value.item() for name, value in stats.items()}
 
 
-# A resumed run keeps its checkpoint's hyperparameters; only how it runs (RUNTIME_FIELDS) may change on --resume.
-RUNTIME_FIELDS = "device compile torch_threads save_every resume track wandb_project_name wandb_entity".split()
+# Typed with --resume, a runtime flag (how the run goes on, where it logs) applies; another field of Args is refused.
+RUNTIME_FIELDS = "device compile torch_threads save_every resume".split()
+RUNTIME_FIELDS += "run_dir exp_name track wandb_project_name wandb_entity".split()
 FORMAT = "ppo-checkpoint-v1"
 
 
@@ -865,9 +866,10 @@ def load_checkpoint(path, args, stage="ppo"):
         raise ValueError(f"{path!r} is a checkpoint of the {checkpoint.get('stage')} stage, not of the {stage} stage")
     unknown = set(checkpoint["args"]) - set(asdict(args))  # a field renamed or removed since the checkpoint
     if unknown:
-        raise ValueError(f"{path!r} holds hyperparameters that Args no longer has: {', '.join(sorted(unknown))}")
+        raise ValueError(f"{path!r} holds hyperparameters that this script's Args lacks: {', '.join(sorted(unknown))}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
-    return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": os.path.dirname(os.path.abspath(path))})
+    run_dir = args.run_dir or os.path.dirname(os.path.abspath(path))  # by default, the checkpoint's folder
+    return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
 
 
 # Every number must be finite. These must also be positive, and these lie in ranges of their own; a number that is in
@@ -931,11 +933,6 @@ def check_args(args):
         fields = ("d_model", "n_layer", "n_head") + ("rm_ensemble",) * (stage == "reward_model")
         if any(getattr(trained, field) != getattr(args, field) for field in fields):
             raise ValueError(f"{flag(name)} holds a network of another --d-model, --n-layer, --n-head or --rm-ensemble")
-    if args.resume is not None:  # main() read the command line over the checkpoint's hyperparameters
-        saved = load_checkpoint(args.resume, args)[1]
-        typed = [f"{flag(name)} {value}" for name, value in asdict(args).items() if value != getattr(saved, name)]
-        if typed:
-            raise ValueError(f"a resumed run keeps its checkpoint's hyperparameters: {', '.join(typed)} cannot apply")
 
 
 def new_run_dir(args):
@@ -970,8 +967,12 @@ def main():
 
     args = tyro.cli(Args)
     try:
-        if args.resume is not None:  # read the command line again over the checkpoint's: a typed flag then shows
-            args = tyro.cli(Args, default=load_checkpoint(args.resume, args)[1])
+        if args.resume:  # the command line read again over the checkpoint's hyperparameters shows what was typed
+            saved = load_checkpoint(args.resume, args)[1]
+            args = tyro.cli(Args, default=saved)
+            typed = [f"--{k.replace('_', '-')} {v}" for k, v in asdict(args).items() if v != getattr(saved, k)]
+            if typed:  # never dropped in silence
+                raise ValueError(f"{', '.join(typed)}: a resumed run keeps its checkpoint's hyperparameters")
         check_args(args)
     except ValueError as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts

@@ -7,6 +7,7 @@ import dataclasses
 import os
 import subprocess
 import sys
+import typing
 
 import pytest
 import torch
@@ -256,3 +257,84 @@ def test_a_term_added_to_the_loss_is_in_the_finite_check_and_in_the_logged_loss(
     args.run_dir = str(tmp_path / "checked")
     with pytest.raises(module.Diverged, match="not finite after iteration 1"):
         module.train(args)
+
+
+# How the runtime flags are typed in the test below: values the command line takes (check_args is not its subject).
+RUNTIME_VALUES = {"device": "cpu", "run_dir": "elsewhere", "resume": None}
+
+
+def another_value(field, value, tmp_path):
+    """Command-line words that set a field of Args to another value than `value`, of its type."""
+    flag = "--" + field.name.replace("_", "-")
+    if field.name in RUNTIME_VALUES:
+        typed = RUNTIME_VALUES[field.name]
+        return [] if typed is None else [flag, str(tmp_path / typed) if field.name == "run_dir" else typed]
+    if isinstance(value, bool):
+        return [f"--no-{flag[2:]}" if value else flag]
+    if typing.get_origin(field.type) is typing.Literal:
+        return [flag, next(choice for choice in typing.get_args(field.type) if choice != value)]
+    kind = type(value) if value is not None else next(t for t in typing.get_args(field.type) if t is not type(None))
+    if kind in (int, float):
+        return [flag, str((value or 0) + 1)]
+    if typing.get_origin(kind) is tuple or kind is tuple:
+        return [flag, "0.5", "0.25"]
+    return [flag, f"other-{field.name}"]
+
+
+def resume_with(module, argv, monkeypatch):
+    """main() on this command line, with what it would start replaced: the Args that train(), evaluate() or
+    start_tracking() got, or the exit code of a refusal."""
+    started = []
+    monkeypatch.setattr(sys, "argv", [module.SCRIPT, *map(str, argv)])
+    for name in ("train", "evaluate", "start_tracking"):
+        if hasattr(module, name):
+            monkeypatch.setattr(module, name, lambda args, *rest: started.append(args))
+    monkeypatch.setattr(module, "check_args", lambda args: None)
+    monkeypatch.setattr(module.signal, "signal", lambda *args: None)  # main()'s handlers stay out of pytest's way
+    threads = torch.get_num_threads()
+    try:
+        module.main()
+    except SystemExit as e:
+        return e.code
+    finally:
+        torch.set_num_threads(threads)
+    return started[-1]
+
+
+# The flags that change how a run goes on or where it is logged, never what it computes: typed with --resume, each
+# applies. Any other field of Args, a hyperparameter, is refused.
+RUNTIME = {"device", "compile", "torch_threads", "save_every", "resume", "run_dir", "exp_name", "track"}
+RUNTIME |= {"wandb_project_name", "wandb_entity", "capture_video", "eval_checkpoint", "eval_episodes"}
+
+
+def check_the_two_lists(module, checkpoint, tmp_path, monkeypatch, capsys):
+    saved = torch.load(checkpoint, weights_only=True)["args"]
+    fields = dataclasses.fields(module.Args)
+    assert set(module.RUNTIME_FIELDS) == RUNTIME & {field.name for field in fields}
+    for field in fields:
+        typed = another_value(field, saved[field.name], tmp_path)
+        got = resume_with(module, ["--resume", checkpoint, *typed], monkeypatch)
+        err = capsys.readouterr().err.strip().splitlines()
+        if field.name in module.RUNTIME_FIELDS:
+            assert not isinstance(got, int | str | None), (field.name, err)
+            assert getattr(got, field.name) != saved[field.name] or field.name == "resume", field.name
+            assert {k: v for k, v in dataclasses.asdict(got).items() if k not in RUNTIME} == {
+                k: v for k, v in saved.items() if k not in RUNTIME
+            }, field.name
+        else:
+            assert got == 2 and len(err) == 1 and "a resumed run keeps its checkpoint's" in err[0], (field.name, err)
+            assert "--" + field.name.replace("_", "-") in err[0], (field.name, err)
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_on_resume_a_runtime_flag_applies_and_a_hyperparameter_is_refused(
+    script, tmp_path, tiny_run, monkeypatch, capsys
+):
+    check_the_two_lists(load_script(script), tiny_run(script)[0] / "checkpoint.pt", tmp_path, monkeypatch, capsys)
+
+
+def test_on_resume_a_runtime_flag_of_ppo_rlhf_applies_and_a_hyperparameter_is_refused(tmp_path, monkeypatch, capsys):
+    rlhf = load_script("ppo_rlhf.py")
+    args = rlhf.Args(d_model=16, n_layer=1, n_head=2, seed=5)
+    rlhf.save_checkpoint(str(tmp_path / "checkpoint.pt"), "ppo", args, iteration=1, global_step=64)
+    check_the_two_lists(rlhf, tmp_path / "checkpoint.pt", tmp_path, monkeypatch, capsys)
