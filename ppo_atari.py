@@ -19,6 +19,7 @@ detail N" (of 9). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes
 
 import atexit
 import contextlib
+import importlib.util
 import itertools
 import math
 import os
@@ -606,6 +607,8 @@ def check_args(args):
     repeat_action_probability = atari_game(args.env_id)[1]  # a ValueError for an id that is not an Atari game's
     if args.capture_video and repeat_action_probability > 0:
         raise ValueError(f"--capture-video replays games, which the sticky actions of {args.env_id} make impossible")
+    if args.capture_video and not all(map(importlib.util.find_spec, ["imageio", "imageio_ffmpeg"])):  # write_video's
+        raise ValueError("--capture-video writes its videos with imageio and imageio-ffmpeg: pip install both")
     run_dir = args.run_dir
     if run_dir is None or args.eval_checkpoint:  # train() makes the default one; evaluation writes only videos
         return

@@ -20,7 +20,7 @@ N" (of their 9 for continuous actions).
 
 import atexit
 import contextlib
-import importlib
+import importlib.util
 import itertools
 import math
 import os
@@ -669,6 +669,8 @@ def check_args(args):
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ValueError(f"{SCRIPT} needs a Box action space and flat observations, not {env.action_space}")
+    if args.capture_video and importlib.util.find_spec("moviepy") is None:  # gymnasium's RecordVideo writes with it
+        raise ValueError("--capture-video writes its videos with moviepy, which is not installed: pip install moviepy")
     if args.capture_video:  # filming that cannot start stops here: a frame, in a child that runs this file's imports
         gl = os.environ.get("MUJOCO_GL", "egl")  # make_env's choice
         imports = f"import runpy, gymnasium as g; runpy.run_path({__file__!r})"

@@ -333,6 +333,24 @@ def test_on_resume_a_runtime_flag_applies_and_a_hyperparameter_is_refused(
     check_the_two_lists(load_script(script), tiny_run(script)[0] / "checkpoint.pt", tmp_path, monkeypatch, capsys)
 
 
+# The writers of the videos: gymnasium's RecordVideo uses moviepy; Atari's write_video, imageio's ffmpeg plugin.
+VIDEO_WRITER = {"ppo_continuous.py": "moviepy", "ppo_kl_penalty.py": "moviepy", "ppo_atari.py": "imageio_ffmpeg"}
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_capture_video_without_its_writer_is_refused_in_one_line(script, tmp_path):
+    cfg = TINY[script]
+    argv = [script, "--env-id", cfg["env_id"], *cfg["tiny"], "--capture-video", "--run-dir", str(tmp_path / "run")]
+    code = (
+        f"import runpy, sys; sys.modules[{VIDEO_WRITER[script]!r}] = None; sys.argv = {[*argv, *ONE_THREAD]!r};"
+        f" runpy.run_path({str(ROOT / script)!r}, run_name='__main__')"
+    )  # sys.modules[name] = None: `import name` fails as if the package were not installed
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
+    assert "--capture-video" in lines[0] and VIDEO_WRITER[script].replace("_", "-") in lines[0], lines[0]
+
+
 def test_on_resume_a_runtime_flag_of_ppo_rlhf_applies_and_a_hyperparameter_is_refused(tmp_path, monkeypatch, capsys):
     rlhf = load_script("ppo_rlhf.py")
     args = rlhf.Args(d_model=16, n_layer=1, n_head=2, seed=5)

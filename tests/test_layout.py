@@ -212,13 +212,14 @@ REACHED = {
     # lines held; about 500 characters a script)
     # a copy's own network, loss term and flags: the rollout buffer's fields one a line (4 lines), the keys of the
     # stats that train() reads (1), the runtime flags that --resume applies (1); ppo_rlhf.py 1 line for its
-    # divergence's advice, and its refusal of a typed hyperparameter moved to main() (2 lines fewer)
-    ("ppo_continuous.py", "lines"): 768,
-    ("ppo_continuous.py", "code_chars"): 24_638,
-    ("ppo_atari.py", "lines"): 710,
-    ("ppo_atari.py", "code_chars"): 22_914,
-    ("ppo_kl_penalty.py", "lines"): 782,
-    ("ppo_kl_penalty.py", "code_chars"): 24_995,
+    # divergence's advice, and its refusal of a typed hyperparameter moved to main() (2 lines fewer); video refused
+    # without its writer (2 lines, Atari 3)
+    ("ppo_continuous.py", "lines"): 770,
+    ("ppo_continuous.py", "code_chars"): 24_824,
+    ("ppo_atari.py", "lines"): 713,
+    ("ppo_atari.py", "code_chars"): 23_134,
+    ("ppo_kl_penalty.py", "lines"): 784,
+    ("ppo_kl_penalty.py", "code_chars"): 25_181,
 }
 NOT_MET = set(REACHED)
 CASES = [
