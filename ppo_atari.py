@@ -574,6 +574,14 @@ def load_checkpoint(path, args):
     return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
 
 
+def check_network(model, saved, path):
+    """Refuse weights saved by another network, in one line that names the first parameter that differs."""
+    shapes = [[f"{k} {list(v.shape)}" for k, v in d.items() if torch.is_tensor(v)] for d in (saved, model.state_dict())]
+    for theirs, mine in itertools.zip_longest(*shapes, fillvalue="nothing"):
+        if theirs != mine:
+            raise ValueError(f"{path!r} holds another network: {theirs} where this script's has {mine}")
+
+
 # Every number must be finite; these must also be positive, and these lie in ranges. A new flag may be any number.
 POSITIVE = "total_timesteps max_episode_frames learning_rate num_envs num_steps minibatch_size update_epochs".split()
 POSITIVE += "clip_coef max_grad_norm save_every eval_episodes torch_threads".split()
@@ -603,8 +611,11 @@ def check_args(args):
     if args.compile and "WORLD_SIZE" in os.environ:  # the graph would hold the group, and gloo's threads, to the exit
         raise ValueError("--compile is for one process; run torchrun without it")
     if args.resume or args.eval_checkpoint:
-        _, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
+        checkpoint, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
     repeat_action_probability = atari_game(args.env_id)[1]  # a ValueError for an id that is not an Atari game's
+    if args.resume or args.eval_checkpoint:  # a copy given another network refuses these weights, before any write
+        with contextlib.closing(make_envs(args, num_envs=1, training=False)) as envs:
+            check_network(Agent(envs.single_action_space.n), checkpoint["agent"], args.resume or args.eval_checkpoint)
     if args.capture_video and repeat_action_probability > 0:
         raise ValueError(f"--capture-video replays games, which the sticky actions of {args.env_id} make impossible")
     if args.capture_video and not all(map(importlib.util.find_spec, ["imageio", "imageio_ffmpeg"])):  # write_video's

@@ -607,6 +607,14 @@ def load_checkpoint(path, args):
     return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
 
 
+def check_network(model, saved, path):
+    """Refuse weights saved by another network, in one line that names the first parameter that differs."""
+    shapes = [[f"{k} {list(v.shape)}" for k, v in d.items() if torch.is_tensor(v)] for d in (saved, model.state_dict())]
+    for theirs, mine in itertools.zip_longest(*shapes, fillvalue="nothing"):
+        if theirs != mine:
+            raise ValueError(f"{path!r} holds another network: {theirs} where this script's has {mine}")
+
+
 # Every number must be finite; these must also be positive, and these lie in ranges. A new flag may be any number.
 POSITIVE = "total_timesteps learning_rate num_envs num_steps lr_target_kl minibatch_size update_epochs".split()
 POSITIVE += "clip_coef max_grad_norm save_every eval_episodes torch_threads".split()
@@ -642,7 +650,7 @@ def check_args(args):
     if args.compile and "WORLD_SIZE" in os.environ:  # the graph would hold the group, and gloo's threads, to the exit
         raise ValueError("--compile is for one process; run torchrun without it")
     if args.resume or args.eval_checkpoint:
-        _, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
+        checkpoint, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
     world_size = int(os.environ.get("WORLD_SIZE", 1))  # torchrun's P
     if args.num_envs % world_size or args.minibatch_size % world_size:
         sizes = f"--num-envs {args.num_envs} and --minibatch-size {args.minibatch_size}"
@@ -655,6 +663,9 @@ def check_args(args):
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ValueError(f"{SCRIPT} needs a Box action space and flat observations, not {env.action_space}")
+    if args.resume or args.eval_checkpoint:  # a copy given another network refuses these weights, before any write
+        agent = Agent(env.observation_space.shape[0], env.action_space.shape[0], norm_obs=args.norm_obs)
+        check_network(agent, checkpoint["agent"], args.resume or args.eval_checkpoint)
     if args.capture_video and importlib.util.find_spec("moviepy") is None:  # gymnasium's RecordVideo writes with it
         raise ValueError("--capture-video writes its videos with moviepy, which is not installed: pip install moviepy")
     if args.capture_video:  # filming that cannot start stops here: a frame, in a child that runs this file's imports

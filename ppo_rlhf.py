@@ -872,6 +872,14 @@ def load_checkpoint(path, args, stage="ppo"):
     return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
 
 
+def check_network(model, saved, path):
+    """Refuse weights saved by another network, in one line that names the first parameter that differs."""
+    shapes = [[f"{k} {list(v.shape)}" for k, v in d.items() if torch.is_tensor(v)] for d in (saved, model.state_dict())]
+    for theirs, mine in itertools.zip_longest(*shapes, fillvalue="nothing"):
+        if theirs != mine:
+            raise ValueError(f"{path!r} holds another network: {theirs} where this script's has {mine}")
+
+
 # Every number must be finite. These must also be positive, and these lie in ranges of their own; a number that is in
 # neither list (a new flag, say) may take any finite value.
 POSITIVE = "torch_threads d_model n_layer n_head temperature sft_steps sft_batch_size sft_learning_rate".split()
@@ -927,12 +935,14 @@ def check_args(args):
     if args.resume is None and held and any("tfevents" in f or f.endswith(".pt") for f in held):
         path = os.path.join(args.run_dir, "checkpoint.pt")
         raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {path}")
-    stages = [] if args.resume else [("sft_checkpoint", "sft"), ("reward_model_checkpoint", "reward_model")]
-    for name, stage in stages:  # (a resumed run has both networks in its checkpoint)
-        trained = load_checkpoint(getattr(args, name), args, stage)[1] if getattr(args, name) else args
-        fields = ("d_model", "n_layer", "n_head") + ("rm_ensemble",) * (stage == "reward_model")
-        if any(getattr(trained, field) != getattr(args, field) for field in fields):
-            raise ValueError(f"{flag(name)} holds a network of another --d-model, --n-layer, --n-head or --rm-ensemble")
+    # Networks of other shapes (other flags, a copy's code) are refused before anything is written; --resume's has both
+    kind = ProcessRewardModel if args.reward == "process" else TinyLM
+    networks = {"sft": new_model(args, "cpu"), "reward_model": new_model(args, "cpu", None, args.rm_ensemble, kind)}
+    for stage, path in [("sft", args.sft_checkpoint), ("reward_model", args.reward_model_checkpoint)]:
+        if args.resume or path:
+            saved = load_checkpoint(args.resume or path, args, "ppo" if args.resume else stage)[0]
+            state = saved["reference" if stage == "sft" else stage] if args.resume else saved["model"]
+            check_network(networks[stage], state, args.resume or path)
 
 
 def new_run_dir(args):

@@ -1,6 +1,7 @@
 """The changes a learner makes after pasting a gym script into a project, each of which once met a trap: a new flag
 whose default is 0, a network of their own, a flag typed on --resume, a renamed copy, an env of their own filmed with
---capture-video, and one more quantity stored in the rollout. Each test makes the change as a user would, on the real
+--capture-video, one more quantity stored in the rollout, a term added to the loss, a copy's network given the script's
+checkpoint, and filming without the videos' writer installed. Each test makes the change as a user would, on the real
 script or on a copy of it, and runs it."""
 
 import dataclasses
@@ -240,6 +241,41 @@ def load_script_at(path):
     return module
 
 
+# A learner's own network in a copy: (the script's lines, the copy's, the first parameter that then differs).
+ANOTHER_NETWORK = {
+    "ppo_continuous.py": (
+        "    hidden = [layer_init(nn.Linear(n_in, 64)), nn.Tanh(), layer_init(nn.Linear(64, 64)), nn.Tanh()]\n"
+        "    return nn.Sequential(*hidden, layer_init(nn.Linear(64, n_out), std=std))",
+        "    sizes = [n_in, 128, 128, 128]  # 3 x 128 ReLU\n"
+        "    hidden = [m for a, b in itertools.pairwise(sizes) for m in (layer_init(nn.Linear(a, b)), nn.ReLU())]\n"
+        "    return nn.Sequential(*hidden, layer_init(nn.Linear(128, n_out), std=std))",
+        "critic.0.weight [64, 11] where this script's has critic.0.weight [128, 11]",
+    ),
+    "ppo_atari.py": (
+        "fc = layer_init(nn.Linear(64 * 7 * 7, 512))",
+        "fc = layer_init(nn.Linear(64 * 7 * 7, 256))",
+        "network.7.weight [512, 3136] where this script's has network.7.weight [256, 3136]",
+    ),
+}
+ANOTHER_NETWORK["ppo_kl_penalty.py"] = ANOTHER_NETWORK["ppo_continuous.py"]
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_copy_with_another_network_refuses_the_scripts_checkpoint_in_one_line_before_writing(script, tmp_path):
+    run_dir, _ = train_tiny(script, tmp_path)
+    old, new, first_difference = ANOTHER_NETWORK[script]
+    copy = copy_of(script, tmp_path / "my_ppo.py")
+    assert old in copy.read_text()
+    copy.write_text(copy.read_text().replace(old, new))
+    written = {path: path.stat().st_mtime_ns for path in run_dir.rglob("*")}
+    for flag in ("--resume", "--eval-checkpoint"):
+        proc = run_copy(copy, flag, run_dir / "checkpoint.pt", cwd=tmp_path, check=False)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+        assert f"holds another network: {first_difference}" in lines[0], lines[0]
+    assert {path: path.stat().st_mtime_ns for path in run_dir.rglob("*")} == written, "nothing is written"
+
+
 @pytest.mark.parametrize("script", GYM_SCRIPTS)
 def test_a_term_added_to_the_loss_is_in_the_finite_check_and_in_the_logged_loss(script, tmp_path):
     """A learner adds a term to the loss at the end of minibatch_loss: the loss logged is the loss minimized, and a
@@ -349,6 +385,28 @@ def test_capture_video_without_its_writer_is_refused_in_one_line(script, tmp_pat
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
     assert "--capture-video" in lines[0] and VIDEO_WRITER[script].replace("_", "-") in lines[0], lines[0]
+
+
+OLD = "45c9356"  # a commit before checkpoints were checked against the network that reads them
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_checkpoint_written_at_the_earlier_commit_resumes(script, tmp_path):
+    old = tmp_path / "old" / script
+    old.parent.mkdir()
+    proc = subprocess.run(["git", "show", f"{OLD}:{script}"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, f"this test needs the git history of commit {OLD}: {proc.stderr}"
+    old.write_text(proc.stdout)
+    cfg = TINY[script]
+    run_copy(old, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", tmp_path / "run", cwd=tmp_path)
+    path = tmp_path / "run" / "checkpoint.pt"
+    checkpoint = torch.load(path, weights_only=True)
+    checkpoint["iteration"] -= 1  # rolled back one iteration, for the resumed run to train
+    checkpoint["global_step"] -= checkpoint["global_step"] // (checkpoint["iteration"] + 1)
+    torch.save(checkpoint, path)
+    proc = run_cli(script, "--resume", path, cwd=tmp_path)
+    assert f"resuming {tmp_path / 'run'} at step {checkpoint['global_step']:,}" in proc.stdout, proc.stdout
+    assert torch.load(path, weights_only=True)["iteration"] == checkpoint["iteration"] + 1
 
 
 def test_on_resume_a_runtime_flag_of_ppo_rlhf_applies_and_a_hyperparameter_is_refused(tmp_path, monkeypatch, capsys):

@@ -396,7 +396,7 @@ BAD_INPUTS = [
     (["--resume", "foreign.pt"], "not a checkpoint written by ppo_rlhf.py"),
     (["--resume", "sft.pt"], "a checkpoint of the sft stage, not of the ppo stage"),
     (["--reward-model-checkpoint", "sft.pt"], "not of the reward_model stage"),
-    (["--sft-checkpoint", "sft.pt"], "--sft-checkpoint holds a network of another --d-model"),
+    (["--sft-checkpoint", "sft.pt"], "'sft.pt' holds another network: tok_emb.weight"),
 ]
 
 
