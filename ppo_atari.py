@@ -19,6 +19,7 @@ detail N" (of 9). `diff ppo_continuous.py ppo_atari.py` shows what Atari changes
 
 import atexit
 import contextlib
+import importlib.util
 import itertools
 import math
 import os
@@ -143,12 +144,13 @@ def minibatch_loss(agent, batch, mb_inds, epsilon, args):
     v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
     entropy = probs.entropy().mean()
     loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
-    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy, "loss": loss}
+    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy}  # each logged as losses/<name>
     # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
     stats["old_approx_kl"] = (-logratio).mean()
     stats["approx_kl"] = ((ratio - 1) - logratio).mean()
     stats["clipfrac"] = ((ratio - 1.0).abs() > epsilon).float().mean()
-    return loss, {name: stat.detach() for name, stat in stats.items()}
+    # train() reads "loss", the loss returned: a term added above is in its check that the run is finite, and logged
+    return loss, {name: stat.detach() for name, stat in (stats | {"loss": loss}).items()}
 
 
 # TRAINING
@@ -162,13 +164,13 @@ def train(args, stop=()):
     device = pick_device(args.device)
     T, N = args.num_steps, args.num_envs
     rank, world_size = rank_and_size()
-    n = N // world_size  # torchrun: this rank steps envs rank n, ..., rank n + n - 1 of the N
+    N_rank = N // world_size  # torchrun: each rank steps its share of the N envs, from env rank x N_rank on
     num_iterations = args.total_timesteps // (N * T)
     compiled_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else None  # --compile: backward too
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
     # On --resume, purge_step drops what the run logged after its checkpoint.
     with (
-        contextlib.closing(make_envs(args, n)) as envs,
+        contextlib.closing(make_envs(args, N_rank)) as envs,
         open_writer(run_dir, purge_step=global_step + 1 if checkpoint else None) as writer,
     ):
         agent = Agent(envs.single_action_space.n).to(device)
@@ -183,16 +185,20 @@ def train(args, stop=()):
         if rank > 0:  # torchrun: the ranks made the same weights; rank r > 0 then draws from a stream of its own
             torch.manual_seed(int(np.random.SeedSequence([args.seed, rank, global_step]).generate_state(1)[0]))
 
-        # The rollout buffer: T steps of this rank's n envs, a tensor for each quantity, each one in the update's batch.
-        scalars = "logprobs rewards values terminations truncations final_values".split()  # one number a step and env
-        buf = SimpleNamespace(**{name: torch.zeros((T, n), device=device) for name in scalars})
-        buf.obs = torch.zeros((T, n, 4, 84, 84), dtype=torch.uint8, device=device)  # uint8 until the network
-        buf.actions = torch.zeros((T, n), dtype=torch.long, device=device)
+        buf = SimpleNamespace()  # the rollout buffer, T steps of this rank's envs: buf.obs is the update's mb["obs"]
+        buf.obs = torch.zeros((T, N_rank, 4, 84, 84), dtype=torch.uint8, device=device)  # uint8 until the network
+        buf.actions = torch.zeros((T, N_rank), dtype=torch.long, device=device)
+        buf.logprobs = torch.zeros((T, N_rank), device=device)
+        buf.values = torch.zeros((T, N_rank), device=device)
+        buf.terminations = torch.zeros((T, N_rank), device=device)
+        buf.truncations = torch.zeros((T, N_rank), device=device)
+        buf.rewards = torch.zeros((T, N_rank), device=device)
+        buf.final_values = torch.zeros((T, N_rank), device=device)  # V of the final observation, where a time limit cut
         # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
-        next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + rank * n + np.arange(n))
+        next_obs, infos = envs.reset(seed=(args.seed + global_step) * N + rank * N_rank + np.arange(N_rank))
         next_obs = torch.as_tensor(next_obs, device=device)
         frame_numbers = infos["episode_frame_number"]
-        lost_life = np.zeros(n, dtype=bool)
+        lost_life = np.zeros(N_rank, dtype=bool)
         video = GameVideo(args.env_id, run_dir, frame_numbers[0], film=args.capture_video and rank == 0)
         action_names = [a.name for a in envs.ale.get_action_set()]
         fire = action_names.index("FIRE") if args.fire_on_life_loss and "FIRE" in action_names else None
@@ -243,7 +249,7 @@ def train(args, stop=()):
             update_stats = []
             for _epoch in range(args.update_epochs):
                 # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches (1/P of each per rank).
-                for mb_inds in torch.randperm(n * T, device=device).split(args.minibatch_size // world_size):
+                for mb_inds in torch.randperm(N_rank * T, device=device).split(args.minibatch_size // world_size):
                     loss, stats = (compiled_loss or minibatch_loss)(agent, batch, mb_inds, epsilon, args)
                     optimizer.zero_grad()
                     loss.backward()
@@ -263,7 +269,7 @@ def train(args, stop=()):
 
             # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
             if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
-                raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
+                raise Diverged(f"loss or weights not finite after iteration {iteration}")
             stopping = bool(all_ranks(torch.tensor([bool(stop)])).any())  # torchrun: all stop at one iteration
             if stopping or iteration % args.save_every == 0 or iteration == num_iterations:
                 writer.flush()  # the curve on disk reaches at least the checkpoint's step
@@ -532,9 +538,10 @@ class Log:
             print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean} | ETA {eta:.1f} min", flush=True)
 
 
-# A resumed run keeps its checkpoint's hyperparameters: only how it runs may change. A checkpoint names this script as
-# it was published, so that a renamed copy resumes its own.
+# Typed with --resume, a runtime flag (how the run goes on, where it logs) applies; any other field of Args is a
+# hyperparameter, and refused. A checkpoint names this script as it was published: a renamed copy resumes its own.
 RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
+RUNTIME_FIELDS += "run_dir exp_name track wandb_project_name wandb_entity".split()
 FORMAT = "ppo-checkpoint-v1"
 WRITER = "ppo_atari.py"
 
@@ -561,10 +568,18 @@ def load_checkpoint(path, args):
         raise ValueError(f"{path!r} is not a checkpoint written by {WRITER} or a copy of it")
     unknown = set(checkpoint["args"]) - set(asdict(args))  # a field renamed or removed since the checkpoint
     if unknown:
-        raise ValueError(f"{path!r} holds hyperparameters that Args no longer has: {sorted(unknown)}")
+        raise ValueError(f"{path!r} holds hyperparameters that this script's Args lacks: {sorted(unknown)}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
-    run_dir = os.path.dirname(os.path.abspath(path))
+    run_dir = args.run_dir or os.path.dirname(os.path.abspath(path))  # by default, the checkpoint's folder
     return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
+
+
+def check_network(model, saved, path):
+    """Refuse weights saved by another network, in one line that names the first parameter that differs."""
+    shapes = [[f"{k} {list(v.shape)}" for k, v in d.items() if torch.is_tensor(v)] for d in (saved, model.state_dict())]
+    for theirs, mine in itertools.zip_longest(*shapes, fillvalue="nothing"):
+        if theirs != mine:
+            raise ValueError(f"{path!r} holds another network: {theirs} where this script's has {mine}")
 
 
 # Every number must be finite; these must also be positive, and these lie in ranges. A new flag may be any number.
@@ -596,10 +611,15 @@ def check_args(args):
     if args.compile and "WORLD_SIZE" in os.environ:  # the graph would hold the group, and gloo's threads, to the exit
         raise ValueError("--compile is for one process; run torchrun without it")
     if args.resume or args.eval_checkpoint:
-        _, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
+        checkpoint, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
     repeat_action_probability = atari_game(args.env_id)[1]  # a ValueError for an id that is not an Atari game's
+    if args.resume or args.eval_checkpoint:  # a copy given another network refuses these weights, before any write
+        with contextlib.closing(make_envs(args, num_envs=1, training=False)) as envs:
+            check_network(Agent(envs.single_action_space.n), checkpoint["agent"], args.resume or args.eval_checkpoint)
     if args.capture_video and repeat_action_probability > 0:
         raise ValueError(f"--capture-video replays games, which the sticky actions of {args.env_id} make impossible")
+    if args.capture_video and not all(map(importlib.util.find_spec, ["imageio", "imageio_ffmpeg"])):  # write_video's
+        raise ValueError("--capture-video writes its videos with imageio and imageio-ffmpeg: pip install both")
     run_dir = args.run_dir
     if run_dir is None or args.eval_checkpoint:  # train() makes the default one; evaluation writes only videos
         return
@@ -687,8 +707,8 @@ def main():
     except Stopped as e:
         print(e)
         sys.exit(130)
-    except Diverged as e:
-        print(f"{SCRIPT}: error: {e}", file=sys.stderr)
+    except Diverged as e:  # the advice is main()'s, where the flags are: --resume keeps every hyperparameter
+        print(f"{SCRIPT}: error: {e}: start a new run with a smaller --learning-rate", file=sys.stderr)
         sys.exit(1)
     except RuntimeError as e:  # torchrun: another rank died (gloo's or nccl's error), and this one ends in one line
         if not (dist.is_initialized() and (isinstance(e, dist.DistError) or "gloo" in str(e))):

@@ -18,7 +18,7 @@ their 13) and "continuous detail N" (of their 9 for continuous actions).
 
 import atexit
 import contextlib
-import importlib
+import importlib.util
 import itertools
 import math
 import os
@@ -71,7 +71,7 @@ class Args:
     clip_vloss: bool = True  # clip the value loss around the old values by --clip-coef (core detail 9; not in eq. (9))
     anneal_logstd: tuple[float, float] | None = None  # a log std not learned but annealed linearly (Table 4: -0.7 -1.6)
     ent_coef: float = 0.0  # entropy bonus coefficient c2 (paper, MuJoCo: no entropy bonus)
-    vf_coef: float = 0.25  # c1 of eq. (9); with separate networks it acts only through the gradient clip
+    vf_coef: float = 0.25  # c1 of eq. (9), CleanRL's 0.5 on half the squared error; felt only in the gradient clip
     clip_grad_norm: bool = True  # clip the global gradient norm (core detail 11)
     max_grad_norm: float = 0.5  # the maximum global gradient norm, when clipping
     norm_obs: bool = True  # normalize observations with running statistics (continuous details 6-7)
@@ -143,12 +143,13 @@ def minibatch_loss(agent, batch, mb_inds, args):
     v_loss = value_loss(newvalue, mb["values"], mb["returns"], args.clip_coef, args.clip_vloss)
     entropy = probs.entropy().mean()
     loss = pg_loss - args.ent_coef * entropy + args.vf_coef * v_loss  # minus eq. (9), to minimize (core detail 10)
-    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy, "loss": loss}
+    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy}  # each logged as losses/<name>
     # Core detail 12: approx_kl is the (r - 1) - log r estimator of KL[pi_old, pi_theta], never negative.
     stats["old_approx_kl"] = (-logratio).mean()
     stats["approx_kl"] = ((ratio - 1) - logratio).mean()
     stats["clipfrac"] = ((ratio - 1.0).abs() > args.clip_coef).float().mean()
-    return loss, {name: stat.detach() for name, stat in stats.items()}
+    # train() reads "approx_kl" (--lr-target-kl) and "loss", the loss returned: a term added above is checked and logged
+    return loss, {name: stat.detach() for name, stat in (stats | {"loss": loss}).items()}
 
 
 def linear_anneal(start, end, fraction):
@@ -183,7 +184,7 @@ def train(args, stop=()):
     device = pick_device(args.device)
     T, N = args.num_steps, args.num_envs
     rank, world_size = rank_and_size()
-    n = N // world_size  # torchrun: this rank steps envs rank n, ..., rank n + n - 1 of the N
+    N_rank = N // world_size  # torchrun: each rank steps its share of the N envs, from env rank x N_rank on
     num_iterations = args.total_timesteps // (N * T)
     compiled_loss = torch.compile(minibatch_loss, fullgraph=True) if args.compile else None  # --compile: backward too
     torch.manual_seed(args.seed)  # with the envs' seeds below, all the randomness: on the CPU, one seed gives one run
@@ -207,13 +208,17 @@ def train(args, stop=()):
         if rank > 0:  # torchrun: the ranks made the same weights; rank r > 0 then draws from a stream of its own
             torch.manual_seed(int(np.random.SeedSequence([args.seed, rank, global_step]).generate_state(1)[0]))
 
-        # The rollout buffer: T steps of this rank's n envs, a tensor for each quantity, each one in the update's batch.
-        scalars = "logprobs rewards values terminations truncations final_values".split()  # one number a step and env
-        buf = SimpleNamespace(**{name: torch.zeros((T, n), device=device) for name in scalars})
-        buf.obs = torch.zeros((T, n, obs_dim), device=device)  # normalized: the network's inputs
-        buf.actions = torch.zeros((T, n, act_dim), device=device)
+        buf = SimpleNamespace()  # the rollout buffer, T steps of this rank's envs: buf.obs is the update's mb["obs"]
+        buf.obs = torch.zeros((T, N_rank, obs_dim), device=device)  # normalized: the network's inputs
+        buf.actions = torch.zeros((T, N_rank, act_dim), device=device)
+        buf.logprobs = torch.zeros((T, N_rank), device=device)
+        buf.values = torch.zeros((T, N_rank), device=device)
+        buf.terminations = torch.zeros((T, N_rank), device=device)
+        buf.truncations = torch.zeros((T, N_rank), device=device)
+        buf.rewards = torch.zeros((T, N_rank), device=device)
+        buf.final_values = torch.zeros((T, N_rank), device=device)  # V of the final observation, where a time limit cut
         # Env i of run --seed s, from step g on, is seeded (s + g) N + i: two runs from step 0 share no env.
-        next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + rank * n + np.arange(n)).tolist())
+        next_obs, _ = envs.reset(seed=((args.seed + global_step) * N + rank * N_rank + np.arange(N_rank)).tolist())
         next_obs = torch.as_tensor(agent.normalize_obs(next_obs, update=True), device=device)
         log = Log(writer, args, global_step, num_iterations * N * T)
 
@@ -261,7 +266,7 @@ def train(args, stop=()):
             update_stats = []
             for _epoch in range(args.update_epochs):
                 # Core detail 6: a new shuffle of the batch each epoch, cut into minibatches (1/P of each per rank).
-                for mb_inds in torch.randperm(n * T, device=device).split(args.minibatch_size // world_size):
+                for mb_inds in torch.randperm(N_rank * T, device=device).split(args.minibatch_size // world_size):
                     loss, stats = (compiled_loss or minibatch_loss)(agent, batch, mb_inds, args)
                     optimizer.zero_grad()
                     loss.backward()
@@ -283,7 +288,7 @@ def train(args, stop=()):
 
             # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
             if not (math.isfinite(losses["loss"]) and all(p.isfinite().all() for p in agent.parameters())):
-                raise Diverged(f"loss or weights not finite after iteration {iteration}: try a smaller --learning-rate")
+                raise Diverged(f"loss or weights not finite after iteration {iteration}")
             stopping = bool(all_ranks(torch.tensor([bool(stop)])).any())  # torchrun: all stop at one iteration
             if stopping or iteration % args.save_every == 0 or iteration == num_iterations:
                 writer.flush()  # the curve on disk reaches at least the checkpoint's step
@@ -426,15 +431,15 @@ def make_envs(args, video_dir, video_prefix):
     import gymnasium as gym
 
     rank, world_size = rank_and_size()
-    n = args.num_envs // world_size  # torchrun: this rank's envs are rank n, ..., rank n + n - 1 of the N
+    N_rank = args.num_envs // world_size  # torchrun: this rank's share of the N envs, from env rank x N_rank on
     module, _, env_name = args.env_id.rpartition(":")
     if module:  # a module:id, whose module registers the id
         importlib.import_module(module)
     if gym.spec(env_name).vector_entry_point and not args.capture_video:  # the env's own N-env implementation, with
-        return gym.make_vec(args.env_id, n, vectorization_mode="vector_entry_point")  # the same episodes as N envs'
+        return gym.make_vec(args.env_id, N_rank, vectorization_mode="vector_entry_point")  # the episodes of N envs
     env_fns = [
         lambda i=i: make_env(args.env_id, args.capture_video and i == 0, video_dir, video_prefix)
-        for i in range(rank * n, rank * n + n)
+        for i in range(rank * N_rank, rank * N_rank + N_rank)
     ]
     return gym.vector.SyncVectorEnv(env_fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
 
@@ -566,9 +571,10 @@ class Log:
             print(f"step {step:,}/{self.total_steps:,} | SPS {sps} | return {mean} | ETA {eta:.1f} min", flush=True)
 
 
-# A resumed run keeps its checkpoint's hyperparameters: only how it runs may change. A checkpoint names this script as
-# it was published, so that a renamed copy resumes its own.
+# Typed with --resume, a runtime flag (how the run goes on, where it logs) applies; any other field of Args is a
+# hyperparameter, and refused. A checkpoint names this script as it was published: a renamed copy resumes its own.
 RUNTIME_FIELDS = "device compile torch_threads capture_video save_every resume eval_checkpoint eval_episodes".split()
+RUNTIME_FIELDS += "run_dir exp_name track wandb_project_name wandb_entity".split()
 FORMAT = "ppo-checkpoint-v1"
 WRITER = "ppo_continuous.py"
 
@@ -595,10 +601,18 @@ def load_checkpoint(path, args):
         raise ValueError(f"{path!r} is not a checkpoint written by {WRITER} or a copy of it")
     unknown = set(checkpoint["args"]) - set(asdict(args))  # a field renamed or removed since the checkpoint
     if unknown:
-        raise ValueError(f"{path!r} holds hyperparameters that Args no longer has: {sorted(unknown)}")
+        raise ValueError(f"{path!r} holds hyperparameters that this script's Args lacks: {sorted(unknown)}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
-    run_dir = os.path.dirname(os.path.abspath(path))
+    run_dir = args.run_dir or os.path.dirname(os.path.abspath(path))  # by default, the checkpoint's folder
     return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
+
+
+def check_network(model, saved, path):
+    """Refuse weights saved by another network, in one line that names the first parameter that differs."""
+    shapes = [[f"{k} {list(v.shape)}" for k, v in d.items() if torch.is_tensor(v)] for d in (saved, model.state_dict())]
+    for theirs, mine in itertools.zip_longest(*shapes, fillvalue="nothing"):
+        if theirs != mine:
+            raise ValueError(f"{path!r} holds another network: {theirs} where this script's has {mine}")
 
 
 # Every number must be finite; these must also be positive, and these lie in ranges. A new flag may be any number.
@@ -636,7 +650,7 @@ def check_args(args):
     if args.compile and "WORLD_SIZE" in os.environ:  # the graph would hold the group, and gloo's threads, to the exit
         raise ValueError("--compile is for one process; run torchrun without it")
     if args.resume or args.eval_checkpoint:
-        _, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
+        checkpoint, args = load_checkpoint(args.resume or args.eval_checkpoint, args)
     world_size = int(os.environ.get("WORLD_SIZE", 1))  # torchrun's P
     if args.num_envs % world_size or args.minibatch_size % world_size:
         sizes = f"--num-envs {args.num_envs} and --minibatch-size {args.minibatch_size}"
@@ -649,6 +663,11 @@ def check_args(args):
     env.close()
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ValueError(f"{SCRIPT} needs a Box action space and flat observations, not {env.action_space}")
+    if args.resume or args.eval_checkpoint:  # a copy given another network refuses these weights, before any write
+        agent = Agent(env.observation_space.shape[0], env.action_space.shape[0], norm_obs=args.norm_obs)
+        check_network(agent, checkpoint["agent"], args.resume or args.eval_checkpoint)
+    if args.capture_video and importlib.util.find_spec("moviepy") is None:  # gymnasium's RecordVideo writes with it
+        raise ValueError("--capture-video writes its videos with moviepy, which is not installed: pip install moviepy")
     if args.capture_video:  # filming that cannot start stops here: a frame, in a child that runs this file's imports
         gl = os.environ.get("MUJOCO_GL", "egl")  # make_env's choice
         imports = f"import runpy, gymnasium as g; runpy.run_path({__file__!r})"
@@ -745,8 +764,8 @@ def main():
     except Stopped as e:
         print(e)
         sys.exit(130)
-    except Diverged as e:
-        print(f"{SCRIPT}: error: {e}", file=sys.stderr)
+    except Diverged as e:  # the advice is main()'s, where the flags are: --resume keeps every hyperparameter
+        print(f"{SCRIPT}: error: {e}: start a new run with a smaller --learning-rate", file=sys.stderr)
         sys.exit(1)
     except RuntimeError as e:  # torchrun: another rank died (gloo's or nccl's error), and this one ends in one line
         if not (dist.is_initialized() and (isinstance(e, dist.DistError) or "gloo" in str(e))):

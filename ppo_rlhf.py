@@ -594,7 +594,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
 
         # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
         if not (math.isfinite(scalars["losses/loss"]) and all(p.isfinite().all() for p in agent.parameters())):
-            raise Diverged(f"loss or weights not finite after iteration {iteration}; try a smaller --learning-rate")
+            advice = "start a new run with a smaller --learning-rate (--resume keeps every hyperparameter)"
+            raise Diverged(f"loss or weights not finite after iteration {iteration}; {advice}")
         if save or stop:
             state = dict(agent=agent.state_dict(), optimizer=optimizer.state_dict(), reference=reference.state_dict())
             state |= dict(reward_model=reward_model.state_dict(), rm_pool=log.pool, kl_coef=kl_coef)
@@ -838,8 +839,9 @@ def response_stats(batch, pool):
     return {f"rlhf/{name}": value.item() for name, value in stats.items()}
 
 
-# A resumed run keeps its checkpoint's hyperparameters; only how it runs (RUNTIME_FIELDS) may change on --resume.
-RUNTIME_FIELDS = "device compile torch_threads save_every resume track wandb_project_name wandb_entity".split()
+# Typed with --resume, a runtime flag (how the run goes on, where it logs) applies; another field of Args is refused.
+RUNTIME_FIELDS = "device compile torch_threads save_every resume".split()
+RUNTIME_FIELDS += "run_dir exp_name track wandb_project_name wandb_entity".split()
 FORMAT = "ppo-checkpoint-v1"
 
 
@@ -864,9 +866,18 @@ def load_checkpoint(path, args, stage="ppo"):
         raise ValueError(f"{path!r} is a checkpoint of the {checkpoint.get('stage')} stage, not of the {stage} stage")
     unknown = set(checkpoint["args"]) - set(asdict(args))  # a field renamed or removed since the checkpoint
     if unknown:
-        raise ValueError(f"{path!r} holds hyperparameters that Args no longer has: {', '.join(sorted(unknown))}")
+        raise ValueError(f"{path!r} holds hyperparameters that this script's Args lacks: {', '.join(sorted(unknown))}")
     runtime = {key: getattr(args, key) for key in RUNTIME_FIELDS}
-    return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": os.path.dirname(os.path.abspath(path))})
+    run_dir = args.run_dir or os.path.dirname(os.path.abspath(path))  # by default, the checkpoint's folder
+    return checkpoint, Args(**{**checkpoint["args"], **runtime, "run_dir": run_dir})
+
+
+def check_network(model, saved, path):
+    """Refuse weights saved by another network, in one line that names the first parameter that differs."""
+    shapes = [[f"{k} {list(v.shape)}" for k, v in d.items() if torch.is_tensor(v)] for d in (saved, model.state_dict())]
+    for theirs, mine in itertools.zip_longest(*shapes, fillvalue="nothing"):
+        if theirs != mine:
+            raise ValueError(f"{path!r} holds another network: {theirs} where this script's has {mine}")
 
 
 # Every number must be finite. These must also be positive, and these lie in ranges of their own; a number that is in
@@ -924,17 +935,14 @@ def check_args(args):
     if args.resume is None and held and any("tfevents" in f or f.endswith(".pt") for f in held):
         path = os.path.join(args.run_dir, "checkpoint.pt")
         raise ValueError(f"--run-dir {args.run_dir} already holds a run: continue it with --resume {path}")
-    stages = [] if args.resume else [("sft_checkpoint", "sft"), ("reward_model_checkpoint", "reward_model")]
-    for name, stage in stages:  # (a resumed run has both networks in its checkpoint)
-        trained = load_checkpoint(getattr(args, name), args, stage)[1] if getattr(args, name) else args
-        fields = ("d_model", "n_layer", "n_head") + ("rm_ensemble",) * (stage == "reward_model")
-        if any(getattr(trained, field) != getattr(args, field) for field in fields):
-            raise ValueError(f"{flag(name)} holds a network of another --d-model, --n-layer, --n-head or --rm-ensemble")
-    if args.resume is not None:  # main() read the command line over the checkpoint's hyperparameters
-        saved = load_checkpoint(args.resume, args)[1]
-        typed = [f"{flag(name)} {value}" for name, value in asdict(args).items() if value != getattr(saved, name)]
-        if typed:
-            raise ValueError(f"a resumed run keeps its checkpoint's hyperparameters: {', '.join(typed)} cannot apply")
+    # Networks of other shapes (other flags, a copy's code) are refused before anything is written; --resume's has both
+    kind = ProcessRewardModel if args.reward == "process" else TinyLM
+    networks = {"sft": new_model(args, "cpu"), "reward_model": new_model(args, "cpu", None, args.rm_ensemble, kind)}
+    for stage, path in [("sft", args.sft_checkpoint), ("reward_model", args.reward_model_checkpoint)]:
+        if args.resume or path:
+            saved = load_checkpoint(args.resume or path, args, "ppo" if args.resume else stage)[0]
+            state = saved["reference" if stage == "sft" else stage] if args.resume else saved["model"]
+            check_network(networks[stage], state, args.resume or path)
 
 
 def new_run_dir(args):
@@ -969,8 +977,12 @@ def main():
 
     args = tyro.cli(Args)
     try:
-        if args.resume is not None:  # read the command line again over the checkpoint's: a typed flag then shows
-            args = tyro.cli(Args, default=load_checkpoint(args.resume, args)[1])
+        if args.resume:  # the command line read again over the checkpoint's hyperparameters shows what was typed
+            saved = load_checkpoint(args.resume, args)[1]
+            args = tyro.cli(Args, default=saved)
+            typed = [f"--{k.replace('_', '-')} {v}" for k, v in asdict(args).items() if v != getattr(saved, k)]
+            if typed:  # never dropped in silence
+                raise ValueError(f"{', '.join(typed)}: a resumed run keeps its checkpoint's hyperparameters")
         check_args(args)
     except ValueError as e:
         print(f"{SCRIPT}: error: {e}", file=sys.stderr)  # one line, before anything starts

@@ -92,6 +92,17 @@ def scripts_with(attribute):
     return [name for name in SCRIPTS if hasattr(load_script(name), attribute)]
 
 
+@pytest.fixture(autouse=True)
+def writes_nothing_in_the_checkout():
+    """Every test writes under the folders pytest gives it (tmp_path): a run folder left in the checkout's runs/
+    fails the test that made it."""
+    runs = ROOT / "runs"
+    before = set(os.listdir(runs)) if runs.is_dir() else set()
+    yield
+    left = (set(os.listdir(runs)) if runs.is_dir() else set()) - before
+    assert not left, f"the test left {sorted(left)} in {runs}: give it a folder under tmp_path"
+
+
 @pytest.fixture(params=SCRIPTS)
 def script(request):
     return request.param

@@ -26,7 +26,7 @@ CHANGED_ON_PURPOSE = {
     },
 }
 # Everything below # MACHINERY that the scripts share: how a run ends early, its log, checkpoints and command line.
-MACHINERY = {"Stopped", "Diverged", "Log", "load_checkpoint", "main"}
+MACHINERY = {"Stopped", "Diverged", "Log", "load_checkpoint", "check_network", "main"}
 MUST_SHARE = {
     ("ppo_continuous.py", "ppo_kl_penalty.py"): {
         "compute_gae",

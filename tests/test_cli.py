@@ -340,7 +340,7 @@ def test_mujoco_scripts_check_their_input_without_ale_py(script, tmp_path):
     assert proc.returncode == 2 and len(lines) == 1 and "unknown env id" in lines[0], proc.stderr
 
 
-def test_divergence_stops_with_one_line_and_keeps_the_last_finite_checkpoint(script, tmp_path, tiny_run):
+def test_divergence_stops_with_one_line_and_keeps_the_last_finite_checkpoint(script, tmp_path, tiny_run, monkeypatch):
     needs_env(script)  # tests/test_rlhf.py has ppo_rlhf.py's own smoke, resume and divergence checks
     run_dir = tmp_path / "run"
     shutil.copytree(tiny_run(script)[0], run_dir)
@@ -364,6 +364,28 @@ def test_divergence_stops_with_one_line_and_keeps_the_last_finite_checkpoint(scr
         for v in torch.load(path, weights_only=True)["agent"].values()
         if isinstance(v, torch.Tensor)
     )
+    # The advice is one the script takes: a new run with a smaller learning rate, where --resume would refuse it.
+    advice = re.search(r"start a new run with a smaller (--[a-z-]+)", lines[0])
+    assert advice, lines[0]
+    smaller = [advice[1], "0.0001"]
+    new_run = ["--env-id", TINY[script]["env_id"], *TINY[script]["tiny"], *smaller, "--run-dir", tmp_path / "anew"]
+    assert main_exit_code(script, new_run, monkeypatch) is None
+    assert main_exit_code(script, ["--resume", path, *smaller], monkeypatch) == 2
+
+
+def main_exit_code(script, argv, monkeypatch):
+    """main() on this command line, with train() replaced: the code it exits with, or None once training starts."""
+    module = load_script(script)
+    monkeypatch.setattr(sys, "argv", [script, *map(str, argv), *ONE_THREAD])
+    monkeypatch.setattr(module, "train", lambda args, stop=(): None)
+    monkeypatch.setattr(module.signal, "signal", lambda *args: None)  # main()'s handlers stay out of pytest's way
+    threads = torch.get_num_threads()
+    try:
+        module.main()
+    except SystemExit as e:
+        return e.code
+    finally:
+        torch.set_num_threads(threads)
 
 
 @pytest.mark.parametrize("script", ["ppo_continuous.py"])

@@ -1,16 +1,18 @@
 """The changes a learner makes after pasting a gym script into a project, each of which once met a trap: a new flag
 whose default is 0, a network of their own, a flag typed on --resume, a renamed copy, an env of their own filmed with
---capture-video, and one more quantity stored in the rollout. Each test makes the change as a user would, on the real
+--capture-video, one more quantity stored in the rollout, a term added to the loss, a copy's network given the script's
+checkpoint, and filming without the videos' writer installed. Each test makes the change as a user would, on the real
 script or on a copy of it, and runs it."""
 
 import dataclasses
 import os
 import subprocess
 import sys
+import typing
 
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli, train_tiny
+from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli, tb_scalars, train_tiny
 
 GYM_SCRIPTS = ["ppo_continuous.py", "ppo_atari.py", "ppo_kl_penalty.py"]
 MUJOCO_SCRIPTS = ["ppo_continuous.py", "ppo_kl_penalty.py"]
@@ -191,7 +193,7 @@ def test_a_new_rollout_quantity_is_one_line_of_storage(script, tmp_path, monkeyp
         script,
         tmp_path / "one_more.py",
         after="buf.actions = torch.zeros(",
-        insert=("buf.step_number = torch.zeros((T, n), device=device)"),
+        insert=("buf.step_number = torch.zeros((T, N_rank), device=device)"),
     )
     path.write_text(
         path.read_text().replace(
@@ -208,19 +210,25 @@ def test_a_new_rollout_quantity_is_one_line_of_storage(script, tmp_path, monkeyp
         return real(agent, batch, mb_inds, *rest)
 
     monkeypatch.setattr(module, "minibatch_loss", recording)
-    cfg = TINY[script]
-    args = module.Args(env_id=cfg["env_id"], run_dir=str(tmp_path / "run"), torch_threads=1)
-    flags = dict(zip(cfg["tiny"][::2], cfg["tiny"][1::2], strict=True))
-    for flag, value in flags.items():
-        field = flag[2:].replace("-", "_")
-        setattr(args, field, type(getattr(args, field))(value))
-    args.total_timesteps = args.num_envs * args.num_steps  # one iteration
+    args = one_iteration(module, script, tmp_path / "run")
     module.train(args)
     steps = torch.cat([s for s, _ in seen])
     n = args.num_envs
     assert sorted(steps.tolist()) == sorted(
         [float(t) for t in range(args.num_steps) for _ in range(n)] * args.update_epochs
     )
+
+
+def one_iteration(module, script, run_dir):
+    """The Args of one iteration of a script's TINY run, written to run_dir, for its train() in this process."""
+    cfg = TINY[script]
+    args = module.Args(env_id=cfg["env_id"], run_dir=str(run_dir), torch_threads=1)
+    flags = dict(zip(cfg["tiny"][::2], cfg["tiny"][1::2], strict=True))
+    for flag, value in flags.items():
+        field = flag[2:].replace("-", "_")
+        setattr(args, field, type(getattr(args, field))(value))
+    args.total_timesteps = args.num_envs * args.num_steps
+    return args
 
 
 def load_script_at(path):
@@ -231,3 +239,178 @@ def load_script_at(path):
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
+
+
+# A learner's own network in a copy: (the script's lines, the copy's, the first parameter that then differs).
+ANOTHER_NETWORK = {
+    "ppo_continuous.py": (
+        "    hidden = [layer_init(nn.Linear(n_in, 64)), nn.Tanh(), layer_init(nn.Linear(64, 64)), nn.Tanh()]\n"
+        "    return nn.Sequential(*hidden, layer_init(nn.Linear(64, n_out), std=std))",
+        "    sizes = [n_in, 128, 128, 128]  # 3 x 128 ReLU\n"
+        "    hidden = [m for a, b in itertools.pairwise(sizes) for m in (layer_init(nn.Linear(a, b)), nn.ReLU())]\n"
+        "    return nn.Sequential(*hidden, layer_init(nn.Linear(128, n_out), std=std))",
+        "critic.0.weight [64, 11] where this script's has critic.0.weight [128, 11]",
+    ),
+    "ppo_atari.py": (
+        "fc = layer_init(nn.Linear(64 * 7 * 7, 512))",
+        "fc = layer_init(nn.Linear(64 * 7 * 7, 256))",
+        "network.7.weight [512, 3136] where this script's has network.7.weight [256, 3136]",
+    ),
+}
+ANOTHER_NETWORK["ppo_kl_penalty.py"] = ANOTHER_NETWORK["ppo_continuous.py"]
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_copy_with_another_network_refuses_the_scripts_checkpoint_in_one_line_before_writing(script, tmp_path):
+    run_dir, _ = train_tiny(script, tmp_path)
+    old, new, first_difference = ANOTHER_NETWORK[script]
+    copy = copy_of(script, tmp_path / "my_ppo.py")
+    assert old in copy.read_text()
+    copy.write_text(copy.read_text().replace(old, new))
+    written = {path: path.stat().st_mtime_ns for path in run_dir.rglob("*")}
+    for flag in ("--resume", "--eval-checkpoint"):
+        proc = run_copy(copy, flag, run_dir / "checkpoint.pt", cwd=tmp_path, check=False)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+        assert f"holds another network: {first_difference}" in lines[0], lines[0]
+    assert {path: path.stat().st_mtime_ns for path in run_dir.rglob("*")} == written, "nothing is written"
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_term_added_to_the_loss_is_in_the_finite_check_and_in_the_logged_loss(script, tmp_path):
+    """A learner adds a term to the loss at the end of minibatch_loss: the loss logged is the loss minimized, and a
+    term that is not finite stops the run, though the gradient (of a constant) leaves the weights finite."""
+    path = copy_of(script, tmp_path / "aux.py", after='stats["clipfrac"] = ', insert="loss = loss + EXTRA")
+    module = load_script_at(path)
+    module.EXTRA = 1000.0
+    args = one_iteration(module, script, tmp_path / "logged")
+    module.train(args)
+    scalars = {tag: values[0][1] for tag, values in tb_scalars(tmp_path / "logged").items()}
+    terms = scalars["losses/policy_loss"] - args.ent_coef * scalars["losses/entropy"]
+    terms += args.vf_coef * scalars["losses/value_loss"]
+    assert scalars["losses/loss"] == pytest.approx(terms + 1000.0, abs=1e-3)
+    module.EXTRA = float("inf")
+    args.run_dir = str(tmp_path / "checked")
+    with pytest.raises(module.Diverged, match="not finite after iteration 1"):
+        module.train(args)
+
+
+# How the runtime flags are typed in the test below: values the command line takes (check_args is not its subject).
+RUNTIME_VALUES = {"device": "cpu", "run_dir": "elsewhere", "resume": None}
+
+
+def another_value(field, value, tmp_path):
+    """Command-line words that set a field of Args to another value than `value`, of its type."""
+    flag = "--" + field.name.replace("_", "-")
+    if field.name in RUNTIME_VALUES:
+        typed = RUNTIME_VALUES[field.name]
+        return [] if typed is None else [flag, str(tmp_path / typed) if field.name == "run_dir" else typed]
+    if isinstance(value, bool):
+        return [f"--no-{flag[2:]}" if value else flag]
+    if typing.get_origin(field.type) is typing.Literal:
+        return [flag, next(choice for choice in typing.get_args(field.type) if choice != value)]
+    kind = type(value) if value is not None else next(t for t in typing.get_args(field.type) if t is not type(None))
+    if kind in (int, float):
+        return [flag, str((value or 0) + 1)]
+    if typing.get_origin(kind) is tuple or kind is tuple:
+        return [flag, "0.5", "0.25"]
+    return [flag, f"other-{field.name}"]
+
+
+def resume_with(module, argv, monkeypatch):
+    """main() on this command line, with what it would start replaced: the Args that train(), evaluate() or
+    start_tracking() got, or the exit code of a refusal."""
+    started = []
+    monkeypatch.setattr(sys, "argv", [module.SCRIPT, *map(str, argv)])
+    for name in ("train", "evaluate", "start_tracking"):
+        if hasattr(module, name):
+            monkeypatch.setattr(module, name, lambda args, *rest: started.append(args))
+    monkeypatch.setattr(module, "check_args", lambda args: None)
+    monkeypatch.setattr(module.signal, "signal", lambda *args: None)  # main()'s handlers stay out of pytest's way
+    threads = torch.get_num_threads()
+    try:
+        module.main()
+    except SystemExit as e:
+        return e.code
+    finally:
+        torch.set_num_threads(threads)
+    return started[-1]
+
+
+# The flags that change how a run goes on or where it is logged, never what it computes: typed with --resume, each
+# applies. Any other field of Args, a hyperparameter, is refused.
+RUNTIME = {"device", "compile", "torch_threads", "save_every", "resume", "run_dir", "exp_name", "track"}
+RUNTIME |= {"wandb_project_name", "wandb_entity", "capture_video", "eval_checkpoint", "eval_episodes"}
+
+
+def check_the_two_lists(module, checkpoint, tmp_path, monkeypatch, capsys):
+    saved = torch.load(checkpoint, weights_only=True)["args"]
+    fields = dataclasses.fields(module.Args)
+    assert set(module.RUNTIME_FIELDS) == RUNTIME & {field.name for field in fields}
+    for field in fields:
+        typed = another_value(field, saved[field.name], tmp_path)
+        got = resume_with(module, ["--resume", checkpoint, *typed], monkeypatch)
+        err = capsys.readouterr().err.strip().splitlines()
+        if field.name in module.RUNTIME_FIELDS:
+            assert not isinstance(got, int | str | None), (field.name, err)
+            assert getattr(got, field.name) != saved[field.name] or field.name == "resume", field.name
+            assert {k: v for k, v in dataclasses.asdict(got).items() if k not in RUNTIME} == {
+                k: v for k, v in saved.items() if k not in RUNTIME
+            }, field.name
+        else:
+            assert got == 2 and len(err) == 1 and "a resumed run keeps its checkpoint's" in err[0], (field.name, err)
+            assert "--" + field.name.replace("_", "-") in err[0], (field.name, err)
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_on_resume_a_runtime_flag_applies_and_a_hyperparameter_is_refused(
+    script, tmp_path, tiny_run, monkeypatch, capsys
+):
+    check_the_two_lists(load_script(script), tiny_run(script)[0] / "checkpoint.pt", tmp_path, monkeypatch, capsys)
+
+
+# The writers of the videos: gymnasium's RecordVideo uses moviepy; Atari's write_video, imageio's ffmpeg plugin.
+VIDEO_WRITER = {"ppo_continuous.py": "moviepy", "ppo_kl_penalty.py": "moviepy", "ppo_atari.py": "imageio_ffmpeg"}
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_capture_video_without_its_writer_is_refused_in_one_line(script, tmp_path):
+    cfg = TINY[script]
+    argv = [script, "--env-id", cfg["env_id"], *cfg["tiny"], "--capture-video", "--run-dir", str(tmp_path / "run")]
+    code = (
+        f"import runpy, sys; sys.modules[{VIDEO_WRITER[script]!r}] = None; sys.argv = {[*argv, *ONE_THREAD]!r};"
+        f" runpy.run_path({str(ROOT / script)!r}, run_name='__main__')"
+    )  # sys.modules[name] = None: `import name` fails as if the package were not installed
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
+    assert "--capture-video" in lines[0] and VIDEO_WRITER[script].replace("_", "-") in lines[0], lines[0]
+
+
+OLD = "45c9356"  # a commit before checkpoints were checked against the network that reads them
+
+
+@pytest.mark.parametrize("script", GYM_SCRIPTS)
+def test_a_checkpoint_written_at_the_earlier_commit_resumes(script, tmp_path):
+    old = tmp_path / "old" / script
+    old.parent.mkdir()
+    proc = subprocess.run(["git", "show", f"{OLD}:{script}"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, f"this test needs the git history of commit {OLD}: {proc.stderr}"
+    old.write_text(proc.stdout)
+    cfg = TINY[script]
+    run_copy(old, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", tmp_path / "run", cwd=tmp_path)
+    path = tmp_path / "run" / "checkpoint.pt"
+    checkpoint = torch.load(path, weights_only=True)
+    checkpoint["iteration"] -= 1  # rolled back one iteration, for the resumed run to train
+    checkpoint["global_step"] -= checkpoint["global_step"] // (checkpoint["iteration"] + 1)
+    torch.save(checkpoint, path)
+    proc = run_cli(script, "--resume", path, cwd=tmp_path)
+    assert f"resuming {tmp_path / 'run'} at step {checkpoint['global_step']:,}" in proc.stdout, proc.stdout
+    assert torch.load(path, weights_only=True)["iteration"] == checkpoint["iteration"] + 1
+
+
+def test_on_resume_a_runtime_flag_of_ppo_rlhf_applies_and_a_hyperparameter_is_refused(tmp_path, monkeypatch, capsys):
+    rlhf = load_script("ppo_rlhf.py")
+    args = rlhf.Args(d_model=16, n_layer=1, n_head=2, seed=5)
+    rlhf.save_checkpoint(str(tmp_path / "checkpoint.pt"), "ppo", args, iteration=1, global_step=64)
+    check_the_two_lists(rlhf, tmp_path / "checkpoint.pt", tmp_path, monkeypatch, capsys)

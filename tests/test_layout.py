@@ -119,6 +119,7 @@ def test_main_owns_the_process_and_turns_ctrl_c_into_the_stop_flag(script, tmp_p
     monkeypatch.setattr(module, "train", train)
     monkeypatch.setattr(module, "check_args", lambda args: None)
     monkeypatch.setattr(sys, "argv", [script, "--torch-threads", "3"])
+    monkeypatch.chdir(tmp_path)  # main() names the run's folder under runs/ in the working directory
     before = process_state()
     try:
         with pytest.raises(SystemExit) as stopped:
@@ -143,10 +144,11 @@ def test_train_has_no_process_settings_to_undo():
 # The budgets set when the scripts were rewritten for reading, after `ruff format`, comments included: lines, code
 # characters (comments, docstrings and blank lines left out, leading spaces stripped) and the lines of train().
 # ppo_rlhf.py has a line budget only. --track and the PEP 723 block moved each line budget by 15, and Table 4's flags
-# ppo_continuous.py's by 25.
+# ppo_continuous.py's by 25. The rollout buffer's fields, declared one a line, moved the train() budgets of
+# ppo_continuous.py and ppo_atari.py by the 4 lines they added.
 BUDGETS = {
-    "ppo_continuous.py": {"lines": 590, "code_chars": 16_500, "train": 120},
-    "ppo_atari.py": {"lines": 585, "code_chars": 17_500, "train": 120},
+    "ppo_continuous.py": {"lines": 590, "code_chars": 16_500, "train": 123},
+    "ppo_atari.py": {"lines": 585, "code_chars": 17_500, "train": 124},
     "ppo_kl_penalty.py": {"lines": 615, "code_chars": 17_800, "train": 135},
     "ppo_rlhf.py": {"lines": 715},  # and PPO's successors, with the hack named, moved it by 80
 }
@@ -192,7 +194,7 @@ def test_the_weight_can_fail():
 REACHED = {
     # and its redesign for reading: PPO's path first, each successor a function found by name, the logging in a class
     # under MACHINERY, and the traps of a pasted copy removed as in the gym scripts (59 lines)
-    ("ppo_rlhf.py", "lines"): 996,  # DPO, the hack's metrics; run dirs; IPO, one-prompt pairs;
+    ("ppo_rlhf.py", "lines"): 1008,  # DPO, the hack's metrics; run dirs; IPO, one-prompt pairs;
     # KTO and reward-model ensembles (whose budget was 815); KTO's KL batch built from each minibatch, z0
     # logged, and the members' own heads with --rm-same-head, the ablation that reproduces the earlier runs (16);
     # process supervision (whose budget was 40): its labels, its reward model, its rewards at the clauses' ends,
@@ -208,12 +210,15 @@ REACHED = {
     # declared, a flag typed with --resume is applied or refused, a checkpoint with a field Args lost is refused, a
     # renamed copy reads its own checkpoints, any env that renders can be filmed, a rollout quantity is one line (the
     # lines held; about 500 characters a script)
-    ("ppo_continuous.py", "lines"): 762,
-    ("ppo_continuous.py", "code_chars"): 24_270,
-    ("ppo_atari.py", "lines"): 705,
-    ("ppo_atari.py", "code_chars"): 22_561,
-    ("ppo_kl_penalty.py", "lines"): 776,
-    ("ppo_kl_penalty.py", "code_chars"): 24_627,
+    # a copy's own network, loss term and flags: a checkpoint of another network refused in one line (11 lines), the
+    # runtime flags that --resume applies (1), video refused without its writer (2, Atari 3), the rollout buffer's
+    # fields one a line (4), the keys of the stats that train() reads (1); ppo_rlhf.py 12 lines for the same
+    ("ppo_continuous.py", "lines"): 781,
+    ("ppo_continuous.py", "code_chars"): 25_382,
+    ("ppo_atari.py", "lines"): 724,
+    ("ppo_atari.py", "code_chars"): 23_701,
+    ("ppo_kl_penalty.py", "lines"): 795,
+    ("ppo_kl_penalty.py", "code_chars"): 25_739,
 }
 NOT_MET = set(REACHED)
 CASES = [

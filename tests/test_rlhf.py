@@ -296,7 +296,9 @@ def test_train_restores_signal_handlers_and_threads_even_when_it_fails(tmp_path,
     handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     threads = torch.get_num_threads()
     monkeypatch.setattr(rlhf, "clipped_surrogate_loss", lambda *a, **k: torch.tensor(float("nan"), requires_grad=True))
-    with pytest.raises(rlhf.Diverged, match="not finite after iteration 1; try a smaller --learning-rate"):
+    with pytest.raises(
+        rlhf.Diverged, match="not finite after iteration 1; start a new run with a smaller --learning-rate"
+    ):
         rlhf.train(rlhf_tiny_args(tmp_path, torch_threads=threads + 1))
     assert {sig: signal.getsignal(sig) for sig in handlers} == handlers and torch.get_num_threads() == threads
 
@@ -342,6 +344,7 @@ def test_divergence_is_one_line_and_exit_1(tmp_path, monkeypatch, capsys):
         rlhf.main()
     err = capsys.readouterr().err.strip().splitlines()
     assert stopped.value.code == 1 and len(err) == 1 and "not finite after iteration 1" in err[0], err
+    assert "start a new run with a smaller --learning-rate" in err[0], err  # as --resume refuses a typed one
 
 
 def bad_input_files(tmp_path):
@@ -393,7 +396,7 @@ BAD_INPUTS = [
     (["--resume", "foreign.pt"], "not a checkpoint written by ppo_rlhf.py"),
     (["--resume", "sft.pt"], "a checkpoint of the sft stage, not of the ppo stage"),
     (["--reward-model-checkpoint", "sft.pt"], "not of the reward_model stage"),
-    (["--sft-checkpoint", "sft.pt"], "--sft-checkpoint holds a network of another --d-model"),
+    (["--sft-checkpoint", "sft.pt"], "'sft.pt' holds another network: tok_emb.weight"),
 ]
 
 

@@ -5,12 +5,12 @@ from each call site to its definition. Each check fails on the script as it was 
 import ast
 import dataclasses
 import importlib.util
-import shutil
+import subprocess
 import sys
 
 import pytest
 import torch
-from conftest import ROOT, load_script
+from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli
 
 SCRIPT = "ppo_rlhf.py"
 rlhf = load_script(SCRIPT)
@@ -36,10 +36,12 @@ def test_a_new_float_flag_at_zero_is_accepted_unless_a_range_is_declared(tmp_pat
 
 
 def a_checkpoint(path, module=rlhf, **saved):
-    """A stage-3 checkpoint of a run with these hyperparameters, as save_checkpoint writes one (no weights: main()
-    reads only its hyperparameters before train(), which these tests replace)."""
+    """A stage-3 checkpoint of a run with these hyperparameters, as save_checkpoint writes one, with its networks' fresh
+    weights (main() checks their shapes; train(), which these tests replace, would read the rest)."""
     args = module.Args(**{"d_model": 16, "n_layer": 1, "n_head": 2, "seed": 5, "learning_rate": 3e-4, **saved})
-    module.save_checkpoint(str(path), "ppo", args, iteration=1, global_step=64)
+    networks = {"reference": module.new_model(args, "cpu").state_dict()}
+    networks["reward_model"] = networks["reference"]
+    module.save_checkpoint(str(path), "ppo", args, iteration=1, global_step=64, **networks)
     return args
 
 
@@ -90,9 +92,10 @@ def test_a_checkpoint_with_a_field_args_no_longer_has_is_refused_in_one_line(tmp
     assert args.uwo_coef == rlhf.Args().uwo_coef and args.seed == 5
 
 
-def renamed_copy(tmp_path):
+def renamed_copy(tmp_path, change=("", "")):
+    """A copy of the script as my_rlhf.py, imported, with the text change[0] replaced by change[1]."""
     path = tmp_path / "my_rlhf.py"
-    shutil.copy(ROOT / SCRIPT, path)
+    path.write_text((ROOT / SCRIPT).read_text().replace(*change))
     spec = importlib.util.spec_from_file_location("my_rlhf", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules["my_rlhf"] = module  # dataclasses look their module up here
@@ -111,6 +114,42 @@ def test_a_renamed_copy_resumes_its_own_and_this_files_checkpoints_and_refuses_a
     torch.save({"format": "ppo-checkpoint-v1", "script": "ppo_continuous.py", "args": {}}, tmp_path / "foreign.pt")
     with pytest.raises(ValueError, match="not a checkpoint written by ppo_rlhf.py"):
         copy.load_checkpoint(str(tmp_path / "foreign.pt"), copy.Args())
+
+
+def test_a_copy_with_another_network_refuses_the_scripts_checkpoints_in_one_line(tmp_path, monkeypatch, capsys):
+    copy = renamed_copy(tmp_path, ("4 * d_model, 0.0", "2 * d_model, 0.0"))  # each block's MLP twice as wide, not 4x
+    assert (tmp_path / "my_rlhf.py").read_text() != (ROOT / SCRIPT).read_text()
+    saved = a_checkpoint(tmp_path / "checkpoint.pt")
+    rlhf.save_checkpoint(str(tmp_path / "sft.pt"), "sft", saved, model=rlhf.new_model(saved, "cpu").state_dict())
+    first = "blocks.layers.0.linear1.weight [64, 16] where this script's has blocks.layers.0.linear1.weight [32, 16]"
+    network = ["--d-model", 16, "--n-layer", 1, "--n-head", 2]
+    for argv in (["--resume", tmp_path / "checkpoint.pt"], ["--sft-checkpoint", tmp_path / "sft.pt", *network]):
+        assert run_main(copy, [*argv, "--run-dir", tmp_path / "new"], monkeypatch) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and f"holds another network: {first}" in lines[0], lines
+        assert run_main(rlhf, [*argv, "--run-dir", tmp_path / "new"], monkeypatch).d_model == 16  # the script's own
+    assert not (tmp_path / "new").exists()
+
+
+OLD = "45c9356"  # a commit before checkpoints were checked against the networks that read them
+
+
+def test_a_checkpoint_written_at_the_earlier_commit_resumes(tmp_path):
+    proc = subprocess.run(["git", "show", f"{OLD}:{SCRIPT}"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, f"this test needs the git history of commit {OLD}: {proc.stderr}"
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / SCRIPT).write_text(proc.stdout)
+    run = [sys.executable, str(tmp_path / "old" / SCRIPT), *TINY[SCRIPT]["tiny"], "--run-dir", str(tmp_path / "run")]
+    proc = subprocess.run([*run, *ONE_THREAD], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    path = tmp_path / "run" / "checkpoint.pt"
+    checkpoint = torch.load(path, weights_only=True)
+    checkpoint["iteration"] -= 1  # rolled back one iteration, for the resumed run to train
+    checkpoint["global_step"] -= checkpoint["global_step"] // (checkpoint["iteration"] + 1)
+    torch.save(checkpoint, path)
+    proc = run_cli(SCRIPT, "--resume", path, cwd=tmp_path)
+    assert f"at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})" in proc.stdout, proc.stdout
+    assert torch.load(path, weights_only=True)["iteration"] == checkpoint["iteration"] + 1
 
 
 def aliases(source):
