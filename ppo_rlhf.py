@@ -64,6 +64,7 @@ class Args:
     rm_ensemble_agg: Literal["mean", "min", "uwo"] = "mean"  # how stage 3 scores with K: uwo is mean - lambda variance
     uwo_coef: float = 0.1  # lambda of uwo, the weight of the members' variance (Coste et al.'s PPO setting)
     reward: Literal["outcome", "process"] = "outcome"  # one score a response, or one a clause (ProcessRewardModel)
+    rm_refresh: int = 0  # every K iterations, the RM learns on gold's labels of pi's current responses (0: never)
     # Stage 3: PPO against the reward model
     total_episodes: int = 12_800  # responses sampled in all, rounded down to whole batches
     batch_size: int = 64  # prompts per rollout
@@ -399,15 +400,28 @@ def preference_pairs(sft, args, device):
     n = args.rm_pairs  # sampled 256 prompts (512 responses) at a time: larger batches run slower on a CPU
     samples = [generate(sft, min(256, n - i), args.response_length, args.temperature, 2) for i in range(0, n, 256)]
     tokens, mask = map(torch.cat, zip(*samples, strict=True))
-    gold, _ = gold_scores(tokens, mask)
-    # The two responses to a prompt, rows 2i and 2i + 1: the gold reward chooses, and ties are dropped.
-    a = torch.arange(0, 2 * n, 2, device=device)[gold[0::2] != gold[1::2]]
-    chosen = a + (gold[a + 1] > gold[a])
-    rejected = a + (gold[a] > gold[a + 1])
+    chosen, rejected = ranked_pairs(tokens, mask)
     n_train = len(chosen) - len(chosen) // 10
     if n_train == len(chosen):
         raise Diverged(f"only {len(chosen)} pairs differ in gold reward: raise --sft-steps or --rm-pairs")
     return tokens, mask, chosen, rejected, n_train
+
+
+def ranked_pairs(tokens, mask):
+    """Rows 2i and 2i + 1 of `tokens`, two responses to a prompt, as (chosen, rejected) by gold, ties dropped."""
+    gold, _ = gold_scores(tokens, mask)
+    a = torch.arange(0, len(tokens), 2, device=tokens.device)[gold[0::2] != gold[1::2]]
+    return a + (gold[a + 1] > gold[a]), a + (gold[a] > gold[a + 1])
+
+
+def reward_model_loss(reward_model, tokens, mask, chosen, rejected, labels):
+    """The loss on pairs of rows: Bradley-Terry's of the scores, or a process RM's squared errors from clause golds."""
+    if isinstance(reward_model, ProcessRewardModel):
+        rows = torch.cat([chosen, rejected])
+        error = reward_model.clause_scores(tokens[rows], mask[rows]) - labels[rows]
+        return (error**2).sum() / (labels[rows] != 0).sum()
+    r_w = reward_model.score(tokens[chosen], mask[chosen])
+    return preference_loss(r_w, reward_model.score(tokens[rejected], mask[rejected]))
 
 
 def train_reward_model(args, sft, run_dir, device, stop):
@@ -433,12 +447,7 @@ def train_reward_model(args, sft, run_dir, device, stop):
 
         def loss_fn(step, order=order, reward_model=reward_model):
             mb_inds = order[(step - 1) * args.rm_batch_size : step * args.rm_batch_size]
-            if kind is ProcessRewardModel:  # each clause's score's squared error from its gold, on the pairs' responses
-                rows = torch.cat([chosen[mb_inds], rejected[mb_inds]])
-                error = reward_model.clause_scores(tokens[rows], mask[rows]) - labels[rows]
-                return (error**2).sum() / ends[rows].sum()
-            r_w = reward_model.score(tokens[chosen[mb_inds]], mask[chosen[mb_inds]])
-            return preference_loss(r_w, reward_model.score(tokens[rejected[mb_inds]], mask[rejected[mb_inds]]))
+            return reward_model_loss(reward_model, tokens, mask, chosen[mb_inds], rejected[mb_inds], labels)
 
         fit(reward_model, loss_fn, steps, args.rm_learning_rate, "2, reward model", stop, saved)
         # Normalize the score, through the scalar head, to std 1 on pi_SFT's responses and to mean 0; but a process RM
@@ -453,17 +462,33 @@ def train_reward_model(args, sft, run_dir, device, stop):
         scores = reward_model.score(tokens, mask)
     accuracy = (scores[chosen[n_train:]] > scores[rejected[n_train:]]).float().mean().item()
     print(f"stage 2: the reward model ranks {accuracy:.1%} of {len(chosen) - n_train} held-out pairs as gold does")
-    state = {"model": reward_model.state_dict(), "held_out_accuracy": accuracy}
+    state = {"model": reward_model.state_dict(), "held_out_accuracy": accuracy, "train_pairs": n_train}
     if kind is ProcessRewardModel:  # and how often it rates a held-out clause good or bad as gold does
         held_out = torch.cat([chosen[n_train:], rejected[n_train:]])
         scores = reward_model.clause_scores(tokens[held_out], mask[held_out])
         right, closes = clause_right(scores, tokens[held_out], mask[held_out])
         state["held_out_clause_accuracy"] = (right.sum() / closes.sum()).item()
         train = torch.cat([chosen[:n_train], rejected[:n_train]])  # the labels it cost, beside the pairs compared
-        state |= {"clause_labels": int(ends[train].sum()), "train_pairs": n_train}
+        state["clause_labels"] = int(ends[train].sum())
         print(f"stage 2: it rates {state['held_out_clause_accuracy']:.1%} of held-out clauses good or bad as gold does")
     save_checkpoint(os.path.join(run_dir, "reward_model.pt"), "reward_model", args, **state)
     return reward_model
+
+
+def refresh_reward_model(reward_model, optimizer, policy, args):
+    """--rm-refresh: the reward model (not frozen) keeps learning on pi's text, as Bai et al. 2022's iterated online
+    RLHF and Llama 2's do, where stage 2 showed it pi_SFT's alone: pairs of pi's current responses to --batch-size
+    prompts, labelled as stage 2's were, and --rm-epochs epochs of clipped steps (gradient_step) of its own Adam, kept
+    across refreshes. Its head keeps stage 2's normalization. Returns the labels used: the pairs, or their clauses."""
+    tokens, mask = generate(policy, args.batch_size, args.response_length, args.temperature, 2)
+    chosen, rejected = ranked_pairs(tokens, mask)
+    labels, ends = clause_golds(tokens, mask)
+    for _ in range(args.rm_epochs):
+        for mb_inds in torch.randperm(len(chosen), device=tokens.device).split(args.rm_batch_size):
+            loss = reward_model_loss(reward_model, tokens, mask, chosen[mb_inds], rejected[mb_inds], labels)
+            gradient_step(reward_model, optimizer, loss, args)
+    process = isinstance(reward_model, ProcessRewardModel)
+    return int(ends[torch.cat([chosen, rejected])].sum()) if process else len(chosen)
 
 
 def clause_right(clause_scores, tokens, mask):
@@ -545,18 +570,22 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
     PPO's successors (after this path) in its update's place: a group baseline (--advantage), DPO, IPO or KTO."""
     reference = sft.requires_grad_(False)  # pi_SFT, frozen
     ppo = args.advantage == "gae" and not (args.dpo or args.kto)  # PPO's successors here fit no value function
-    agent = Agent(sft, reward_model.requires_grad_(False), args.value_model if ppo else "policy-head")
+    agent = Agent(sft, reward_model.requires_grad_(args.rm_refresh > 0), args.value_model if ppo else "policy-head")
     agent.requires_grad_(True)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)  # core detail 3
     num_iterations = args.total_episodes // args.batch_size
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     kl_coef = checkpoint["kl_coef"] if checkpoint else args.kl_coef
+    rm_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.rm_learning_rate) if args.rm_refresh else None
+    refresh_labels = checkpoint.get("refresh_labels", 0) if checkpoint else 0
     # DPO's pairs are stage 2's, drawn with stage 2's seed: before stage 3's random state is set or restored
     pairs = dpo_pairs(reference, args, device) if args.dpo or args.kto else None
     torch.manual_seed(args.seed + 2)
     if checkpoint:
         agent.load_state_dict(checkpoint["agent"])
         optimizer.load_state_dict(checkpoint["optimizer"])
+        if rm_optimizer:
+            rm_optimizer.load_state_dict(checkpoint["rm_optimizer"])
         torch.set_rng_state(checkpoint["torch_rng_state"])
         print(f"resuming {run_dir} at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})")
     if args.compile:  # in place: the calls below, and the names in the checkpoint, stay the module's
@@ -591,6 +620,8 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
         scalars = log.update(iteration, batch, rewards, update_stats, kl_coef, save)
         if args.adaptive_kl:
             kl_coef = adapt_kl_coef(kl_coef, scalars["rlhf/kl"], args.kl_target, args.batch_size, args.kl_horizon)
+        if args.rm_refresh and iteration % args.rm_refresh == 0:  # the next rollouts are scored by the refreshed RM
+            refresh_labels += refresh_reward_model(reward_model, rm_optimizer, agent.policy, args)
 
         # CHECKPOINT, unless the run diverged: then the last finite checkpoint stays on disk.
         if not (math.isfinite(scalars["losses/loss"]) and all(p.isfinite().all() for p in agent.parameters())):
@@ -600,6 +631,7 @@ def train_ppo(args, sft, reward_model, checkpoint, run_dir, device, stop, writer
             state = dict(agent=agent.state_dict(), optimizer=optimizer.state_dict(), reference=reference.state_dict())
             state |= dict(reward_model=reward_model.state_dict(), rm_pool=log.pool, kl_coef=kl_coef)
             state |= dict(global_step=global_step, iteration=iteration, torch_rng_state=torch.get_rng_state())
+            state |= dict(rm_optimizer=rm_optimizer.state_dict(), refresh_labels=refresh_labels) if rm_optimizer else {}
             save_checkpoint(checkpoint_path, "ppo", args, **state)
         if stop:
             raise Stopped(f"stopped at step {global_step:,}; continue with --resume {checkpoint_path}")
@@ -888,7 +920,7 @@ POSITIVE += "update_epochs learning_rate kl_target kl_horizon clip_coef max_grad
 # The shortest response, "the NOUN was ADJ <eos>", is 5 tokens; 100 comparisons hold out 10 to measure the RM with.
 RANGES = {"gamma": (0, 1), "gae_lambda": (0, 1), "kto_desirable_share": (0, 1), "rm_pairs": (100, math.inf)}
 RANGES |= {"kl_coef": (0, math.inf), "vf_coef": (0, math.inf), "uwo_coef": (0, math.inf), "group_size": (2, math.inf)}
-RANGES |= {"response_length": (5, BLOCK_SIZE - PROMPT_LENGTH)}
+RANGES |= {"response_length": (5, BLOCK_SIZE - PROMPT_LENGTH), "rm_refresh": (0, math.inf)}
 
 
 def check_args(args):
@@ -918,6 +950,8 @@ def check_args(args):
         raise ValueError("--ipo is a loss of --dpo: add --dpo")
     if args.reward == "process" and args.rm_ensemble > 1:
         raise ValueError("--reward process trains one process reward model: drop --rm-ensemble")
+    if args.rm_refresh and (args.rm_ensemble > 1 or args.dpo or args.kto):
+        raise ValueError("--rm-refresh trains the one reward model PPO reads: drop --rm-ensemble, --dpo and --kto")
     if args.rm_same_head and args.rm_ensemble == 1:
         raise ValueError("--rm-same-head is how the members of an ensemble start: add --rm-ensemble K > 1")
     if args.adaptive_kl and args.kl_coef == 0:

@@ -55,9 +55,11 @@ KTO_STATS = ("kto_z0", "kto_mismatched_reward")
 # A --reward process run's share of the policy's clauses its reward model rates good or bad as gold does (rlhf/*), in
 # <folder>/process/.
 PROCESS_STATS = ("rm_clause_accuracy",)
-# What a process RM's reward_model.pt says of it, in its run's CSV header as rm_<fact>: its accuracy on held-out
-# clauses, and the labels it cost (clauses) beside the comparisons an outcome RM of the same responses learns from.
-PROCESS_RM = ("held_out_clause_accuracy", "clause_labels", "train_pairs")
+# What an RLHF run's reward_model.pt says of its reward model, in the run's CSV header as rm_<fact>: a process RM's
+# accuracy on held-out clauses and the labels it cost (clauses), and the comparisons its stage 2 trained on (an
+# outcome RM's too, from ppo_rlhf.py's --rm-refresh on); and from the run's checkpoint.pt, rm_refresh_labels, the
+# labels a --rm-refresh run's reward model learned from on the policy's text.
+RM_FACTS = ("held_out_clause_accuracy", "clause_labels", "train_pairs")
 
 # best_of_n.py's columns, in <folder>/best_of_n/seed<N>.csv.
 BEST_OF_N = ("n", "kl", "score", "gold_score", "well_formed", "spam", "garbled", "rm_accuracy")
@@ -120,7 +122,7 @@ class RunLogs:
     ensemble: list | None = None  # an --rm-ensemble run: (step, rm_disagreement, each member's score) per iteration
     kto: list | None = None  # a --kto run: (step, *KTO_STATS) per iteration
     process: list | None = None  # a --reward process run: (step, *PROCESS_STATS) per iteration
-    rm_process: dict | None = None  # a --reward process run: PROCESS_RM's facts of its reward model
+    rm_facts: dict | None = None  # an RLHF run: those of RM_FACTS its reward model has, and refresh_labels
 
     def header(self):
         """The CSV header lines that come from the run's own logs: [(key, value), ...]."""
@@ -129,7 +131,7 @@ class RunLogs:
             *([("rm_held_out_accuracy", f"{self.rm_held_out_accuracy:.4f}")] if self.rm_held_out_accuracy else []),
             *(
                 (f"rm_{key}", f"{value:.4f}" if isinstance(value, float) else f"{value}")
-                for key, value in (self.rm_process or {}).items()
+                for key, value in (self.rm_facts or {}).items()
             ),
             *([("rm_accuracy", RM_ACCURACY)] if self.rlhf else []),
         ]
@@ -174,7 +176,7 @@ def read_run(run_dir):
         updates=scalars(acc, "losses/", UPDATE_STATS),
         rlhf=rlhf,
         rm_held_out_accuracy=held_out_accuracy(run_dir),
-        rm_process=process_facts(run_dir),
+        rm_facts=reward_model_facts(run_dir, checkpoint),
         samples=last_samples(run_dir) if rlhf else [],
         ensemble=scalars(acc, "rlhf/", (*ENSEMBLE_STATS, *sorted(members, key=len))) if members else None,
         kto=scalars(acc, "losses/", KTO_STATS),
@@ -193,15 +195,16 @@ def held_out_accuracy(run_dir):
     return torch.load(path, map_location="cpu", weights_only=True)["held_out_accuracy"]
 
 
-def process_facts(run_dir):
-    """{fact: value} of PROCESS_RM from a --reward process run's reward_model.pt; None for any other run."""
+def reward_model_facts(run_dir, checkpoint):
+    """{fact: value} of those of RM_FACTS that an RLHF run's reward_model.pt holds, and refresh_labels from its
+    `checkpoint` where it has them; None for a run with neither."""
     path = Path(run_dir) / "reward_model.pt"
-    if not path.exists():
-        return None
     import torch
 
-    saved = torch.load(path, map_location="cpu", weights_only=True)
-    return {key: saved[key] for key in PROCESS_RM} if all(key in saved for key in PROCESS_RM) else None
+    saved = torch.load(path, map_location="cpu", weights_only=True) if path.exists() else {}
+    facts = {key: saved[key] for key in RM_FACTS if key in saved}
+    facts |= {"refresh_labels": checkpoint["refresh_labels"]} if "refresh_labels" in checkpoint else {}
+    return facts or None
 
 
 def last_samples(run_dir, count=3):

@@ -194,11 +194,12 @@ def test_the_weight_can_fail():
 REACHED = {
     # and its redesign for reading: PPO's path first, each successor a function found by name, the logging in a class
     # under MACHINERY, and the traps of a pasted copy removed as in the gym scripts (59 lines)
-    ("ppo_rlhf.py", "lines"): 1008,  # DPO, the hack's metrics; run dirs; IPO, one-prompt pairs;
+    ("ppo_rlhf.py", "lines"): 1030,  # DPO, the hack's metrics; run dirs; IPO, one-prompt pairs;
     # KTO and reward-model ensembles (whose budget was 815); KTO's KL batch built from each minibatch, z0
     # logged, and the members' own heads with --rm-same-head, the ablation that reproduces the earlier runs (16);
     # process supervision (whose budget was 40): its labels, its reward model, its rewards at the clauses' ends,
-    # its accuracy per clause held out and on the policy's text
+    # its accuracy per clause held out and on the policy's text; --rm-refresh, a reward model that keeps learning on
+    # the policy's text with an optimizer of its own, its labels counted, and the loss stage 2 and it share (34)
     # torchrun (the section MANY PROCESSES, the normalizers' merge, one record, the ranks' stops and faults),
     # run dirs made atomically and filming checked before the run; torch._dynamo imported before the group;
     # no line: a dash for the return before the first episode ends (2 characters) and, in the MuJoCo

@@ -1,6 +1,7 @@
 """ppo_rlhf.py: its math against plain loops and hand computations, its language, and its real command line on a tiny
 budget (stop and resume, determinism, cached stages, bad input)."""
 
+import copy
 import math
 import re
 import signal
@@ -383,6 +384,9 @@ BAD_INPUTS = [
     (["--rm-same-head"], "--rm-same-head is how the members of an ensemble start: add --rm-ensemble K > 1"),
     (["--reward", "process", "--rm-ensemble", "2"], "--reward process trains one process reward model: drop"),
     (["--reward", "steps"], "invalid choice"),
+    (["--rm-refresh", "-1"], "--rm-refresh must be in [0, inf]"),
+    (["--rm-refresh", "4", "--rm-ensemble", "2"], "--rm-refresh trains the one reward model PPO reads: drop"),
+    (["--rm-refresh", "4", "--dpo", "--kl-coef", "0.1"], "--rm-refresh trains the one reward model PPO reads: drop"),
     (["--rm-ensemble", "2", "--uwo-coef", "-1"], "--uwo-coef must be in [0, inf]"),
     (["--rm-ensemble-agg", "max"], "invalid choice"),
     (["--ipo"], "--ipo is a loss of --dpo: add --dpo"),
@@ -940,3 +944,144 @@ def test_the_process_rms_held_out_clause_accuracy_is_saved_and_logged(tiny_run, 
     assert int(meta["rm_clause_labels"]) == sum(closers) and int(meta["rm_train_pairs"]) == n_train
     series = results.read_series(tmp_path / "results", "process")["arm", 1]
     np.testing.assert_allclose(series[:, 1], [value for _, value in logged], rtol=1e-5)
+
+
+def test_the_process_rm_is_scaled_and_the_outcome_rm_shifted_too(tiny_run, tmp_path, monkeypatch):
+    """Stage 2 normalizes the reward model's score through its head, on pi_SFT's responses: an outcome RM's to mean 0
+    and std 1; a process RM's only scaled to std 1, each clause's score divided by the same number and nothing taken
+    from it, since a shift would add the same to every clause and pay for writing more of them."""
+    _, run_dir = tiny_run
+    fitted = []
+    fit = rlhf.fit
+
+    def fit_seen(model, *rest):
+        fit(model, *rest)
+        fitted.append(copy.deepcopy(model))  # the reward model as fitted, before its normalization
+
+    monkeypatch.setattr(rlhf, "fit", fit_seen)
+    for reward, kind in (("outcome", rlhf.TinyLM), ("process", rlhf.ProcessRewardModel)):
+        args = rlhf_tiny_args(tmp_path, reward, reward=reward, total_episodes=16)
+        rlhf.train(rlhf.Args(**{**vars(args), "sft_checkpoint": str(run_dir / "sft.pt")}))
+        saved = torch.load(tmp_path / reward / "reward_model.pt", weights_only=True)["model"]
+        normalized = rlhf.new_model(args, "cpu", saved, kind=kind)
+        sft = rlhf.new_model(args, "cpu", torch.load(run_dir / "sft.pt", weights_only=True)["model"])
+        tokens, mask, *_ = rlhf.preference_pairs(sft, args, "cpu")
+        with torch.no_grad():
+            raw = fitted[-1].score(tokens, mask)
+            scores = normalized.score(tokens, mask)
+            assert raw.mean().abs() > 0.1 * raw.std()  # so that a shift would show
+            if reward == "outcome":
+                torch.testing.assert_close(scores, (raw - raw.mean()) / raw.std(), rtol=1e-4, atol=1e-5)
+            else:  # each clause's score, at its closing token, is the fitted one divided by the std: no shift
+                clauses = normalized.clause_scores(tokens, mask)
+                torch.testing.assert_close(
+                    clauses, fitted[-1].clause_scores(tokens, mask) / raw.std(), atol=1e-5, rtol=1e-4
+                )
+                assert scores.std().item() == pytest.approx(1.0, rel=1e-4) and scores.mean().abs() > 0.1
+
+
+def refreshes_seen(monkeypatch):
+    """Record each call of refresh_reward_model in a run: (the policy it sampled from, a copy of the policy's weights
+    then, the tokens and mask it generated, every minibatch of pairs it trained on, the labels it returned), and the
+    reward model's weights before and after."""
+    seen = []
+    refresh, generate, loss = rlhf.refresh_reward_model, rlhf.generate, rlhf.reward_model_loss
+
+    def refresh_seen(reward_model, optimizer, policy, args):
+        seen.append({"policy": policy, "weights": copy.deepcopy(policy.state_dict()), "pairs": []})
+        seen[-1]["rm_before"] = copy.deepcopy(reward_model.state_dict())
+        seen[-1]["labels"] = refresh(reward_model, optimizer, policy, args)
+        seen[-1]["rm_after"] = copy.deepcopy(reward_model.state_dict())
+        return seen[-1]["labels"]
+
+    def generate_seen(lm, *rest):
+        tokens, mask = generate(lm, *rest)
+        if seen and "tokens" not in seen[-1]:
+            seen[-1] |= {"lm": lm, "tokens": tokens, "mask": mask, "group_size": rest[-1]}
+        return tokens, mask
+
+    def loss_seen(reward_model, tokens, mask, chosen, rejected, labels):
+        if seen and "rm_after" not in seen[-1]:
+            seen[-1]["pairs"].append((tokens, chosen, rejected))
+        return loss(reward_model, tokens, mask, chosen, rejected, labels)
+
+    monkeypatch.setattr(rlhf, "refresh_reward_model", refresh_seen)
+    monkeypatch.setattr(rlhf, "generate", generate_seen)
+    monkeypatch.setattr(rlhf, "reward_model_loss", loss_seen)
+    return seen
+
+
+@pytest.mark.parametrize("reward", ["outcome", "process"])
+def test_a_refresh_trains_the_rm_on_the_policys_current_samples_and_counts_their_labels(
+    reward, tiny_run, tmp_path, monkeypatch
+):
+    """--rm-refresh 2 over 4 iterations: after iterations 2 and 4, the reward model trains on pairs of responses that
+    the policy it is refreshed for samples then (two to a prompt, from weights that PPO has moved from pi_SFT's), each
+    pair ranked by gold as stage 2's are, every pair once an epoch; and the run counts the labels: the pairs of
+    different gold (an outcome RM), or the closing tokens of their responses (a process RM). The results folder keeps
+    the count beside stage 2's."""
+    _, run_dir = tiny_run
+    seen = refreshes_seen(monkeypatch)
+    args = rlhf_tiny_args(tmp_path, reward, reward=reward, rm_refresh=2, kl_coef=0.0, rm_epochs=2, rm_batch_size=4)
+    agent, _ = rlhf.train(rlhf.Args(**{**vars(args), "sft_checkpoint": str(run_dir / "sft.pt")}))
+    sft = torch.load(run_dir / "sft.pt", weights_only=True)["model"]
+    assert len(seen) == 2
+    counted = 0
+    for refresh in seen:
+        assert refresh["policy"] is agent.policy and refresh["lm"] is agent.policy and refresh["group_size"] == 2
+        assert any(not torch.equal(w, sft[name]) for name, w in refresh["weights"].items())  # pi has moved from pi_SFT
+        tokens, mask = refresh["tokens"], refresh["mask"]
+        assert len(tokens) == 2 * args.batch_size and torch.equal(tokens[0::2, :6], tokens[1::2, :6])  # one prompt
+        gold, _ = rlhf.gold_scores(tokens, mask)
+        pairs = [
+            (i, i + 1) if gold[i] > gold[i + 1] else (i + 1, i)
+            for i in range(0, len(tokens), 2)
+            if gold[i] != gold[i + 1]
+        ]
+        trained = [
+            (c, r)
+            for t, chosen, rejected in refresh["pairs"]
+            for c, r in zip(chosen.tolist(), rejected.tolist(), strict=True)
+        ]
+        assert all(t is tokens for t, _, _ in refresh["pairs"])
+        assert sorted(trained) == sorted(pairs * args.rm_epochs) and len(pairs) > 2  # each pair once an epoch
+        assert any(not torch.equal(w, refresh["rm_after"][k]) for k, w in refresh["rm_before"].items())
+        if reward == "outcome":
+            labels = len(pairs)
+        else:  # a label at each "and" or EOS of the pairs' responses
+            rows = [row for pair in pairs for row in pair]
+            words = [rlhf.WORDS[t] for row in rows for t in tokens[row, 6:][mask[row] > 0].tolist()]
+            labels = sum(word in ("and", "<eos>") for word in words)
+        assert refresh["labels"] == labels
+        counted += labels
+    checkpoint = torch.load(tmp_path / reward / "checkpoint.pt", weights_only=True)
+    assert checkpoint["refresh_labels"] == counted and checkpoint["rm_optimizer"]["state"]
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import results
+
+    csv = results.write_run(tmp_path / "results", "reviews__arm__seed1", [], results.read_run(tmp_path / reward))
+    meta, _ = results.read_csv(csv)
+    saved = torch.load(tmp_path / reward / "reward_model.pt", weights_only=True)
+    assert int(meta["rm_refresh_labels"]) == counted and int(meta["rm_train_pairs"]) == saved["train_pairs"] > 0
+
+
+def test_a_run_with_refreshes_stopped_and_resumed_ends_as_an_uninterrupted_one(tmp_path):
+    """The refreshed reward model, its optimizer and the labels counted go into the checkpoint: a run stopped at its
+    first checkpoint and resumed ends bit for bit where an uninterrupted one does."""
+    flags = {"rm_refresh": 1, "kl_coef": 0.0, "save_every": 2}
+    whole, _ = rlhf.train(rlhf_tiny_args(tmp_path, "whole", **flags))
+
+    class AtFirstCheckpoint:
+        def __bool__(self):
+            return (tmp_path / "cut" / "checkpoint.pt").exists()
+
+    with pytest.raises(rlhf.Stopped):
+        rlhf.train(rlhf_tiny_args(tmp_path, "cut", **flags), AtFirstCheckpoint())
+    assert torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)["iteration"] == 2
+    resumed, _ = rlhf.train(rlhf_tiny_args(tmp_path, "cut", resume=str(tmp_path / "cut" / "checkpoint.pt"), **flags))
+    for name, weight in whole.state_dict().items():
+        assert torch.equal(weight, resumed.state_dict()[name]), name
+    ends = [torch.load(tmp_path / run / "checkpoint.pt", weights_only=True) for run in ("whole", "cut")]
+    assert ends[0]["refresh_labels"] == ends[1]["refresh_labels"] > 0
+    for name, weight in ends[0]["reward_model"].items():
+        assert torch.equal(weight, ends[1]["reward_model"][name]), name

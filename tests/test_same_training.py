@@ -8,7 +8,7 @@ import sys
 
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, load_script
+from conftest import ONE_THREAD, ROOT, TINY, load_script
 
 REFERENCE = "7632f39"
 MUJOCO = ["--num-steps", "128", "--minibatch-size", "32", "--update-epochs", "3", "--total-timesteps", "256"]
@@ -23,9 +23,9 @@ CASES = [
 ]
 
 
-def reference_source(script):
-    proc = subprocess.run(["git", "show", f"{REFERENCE}:{script}"], cwd=ROOT, capture_output=True, text=True)
-    assert proc.returncode == 0, f"this test needs the git history of commit {REFERENCE}: {proc.stderr}"
+def reference_source(script, commit=REFERENCE):
+    proc = subprocess.run(["git", "show", f"{commit}:{script}"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, f"this test needs the git history of commit {commit}: {proc.stderr}"
     return proc.stdout
 
 
@@ -72,6 +72,31 @@ def test_training_is_bit_identical_to_the_reference_commit(script, flags, tmp_pa
     }
     defaults = dataclasses.asdict(load_script(script).Args())
     assert {k: new["args"][k] for k in added} == {k: defaults[k] for k in added}
+
+
+# ppo_rlhf.py before --rm-refresh, which trains the reward model during stage 3: without it (the default, 0), the
+# three stages train as they did, bit for bit, for an outcome and for a process reward model.
+RLHF_REFERENCE = "45c9356"
+
+
+@pytest.mark.parametrize("reward", ["outcome", "process"])
+def test_ppo_rlhf_without_a_refresh_trains_as_before_the_flag(reward, tmp_path):
+    flags = [*TINY["ppo_rlhf.py"]["tiny"], "--reward", reward, "--kl-coef", "0"]
+    (tmp_path / "reference").mkdir()
+    old_script = tmp_path / "reference" / "ppo_rlhf.py"
+    old_script.write_text(reference_source("ppo_rlhf.py", RLHF_REFERENCE))
+    old = checkpoint_after(old_script, flags, tmp_path / "old")
+    new = checkpoint_after(ROOT / "ppo_rlhf.py", flags, tmp_path / "new")
+    assert new["iteration"] == old["iteration"] > 0
+    assert "rm_optimizer" not in new and "refresh_labels" not in new
+    for key in ("agent", "optimizer", "reference", "reward_model", "rm_pool", "kl_coef", "torch_rng_state"):
+        assert_identical(old[key], new[key], key)
+    old_rm, new_rm = (
+        torch.load(run / "reward_model.pt", weights_only=True) for run in (tmp_path / "old", tmp_path / "new")
+    )
+    for key in old_rm.keys() - {"args"}:  # the same reward model, and what was said of it, and more (train_pairs)
+        assert_identical(old_rm[key], new_rm[key], key)
+    assert new["args"] == {**old["args"], "run_dir": new["args"]["run_dir"], "rm_refresh": 0}
 
 
 def test_the_comparison_can_fail():
