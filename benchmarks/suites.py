@@ -211,12 +211,19 @@ SUITES = {
                 "ppo_rlhf.py",
                 ["--rm-ensemble", "4", "--rm-ensemble-agg", "uwo", "--rm-same-head", "--kl-coef", "0"],
             ),
+            # A reward model that keeps learning on the policy's own text (iterated online RLHF), at beta 0: every 8
+            # iterations, pairs of the policy's responses to 64 prompts labelled by gold, for the outcome RM and for
+            # the process RM. Stage 2's 4,096 comparisons and 200 refreshes of 64 come to 16,896, about
+            # rm16384-beta0's 16,384: the two compare at about equal labels.
+            "refresh8-beta0": ("ppo_rlhf.py", ["--rm-refresh", "8", "--kl-coef", "0"]),
+            "process-refresh8-beta0": ("ppo_rlhf.py", ["--reward", "process", "--rm-refresh", "8", "--kl-coef", "0"]),
         },
         ["reviews"],
         [1, 2, 3],
         102_400,
         "ppo_rlhf.py past the gold peak: beta 0 and 0.05, beta 0 with reward models from 1,024 and 16,384 pairs, and"
-        " with ensembles of 4 (their mean, their minimum), and with a process reward model",
+        " with ensembles of 4 (their mean, their minimum), with a process reward model, and with the outcome and the"
+        " process reward models refreshed on the policy's text every 8 iterations",
         env_flag=None,
         budget_flag="--total-episodes",
         report="overoptimization",

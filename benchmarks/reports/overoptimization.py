@@ -6,9 +6,10 @@ with a KL penalty lie on the unpenalized run's curve, stopping earlier, (c) does
 (d) does an ensemble of reward models peak later or higher than one, and (e) when the policy falls, do all members
 overrate what it writes (herding), or does their disagreement rise first. The figure has a panel each for the KL
 penalty, the group baselines, DPO, IPO and KTO (the rlhf suite's arms), the RM size, the ensembles and process
-supervision, whose (f) credit assignment and (g) over-optimization the report answers too. Peaks and falls
-are read by reports/rlhf_series.py's rule, and the report says which verdicts it changed from the previous rule. What
-it measures, its claims, its figure and its account of the change are the modules overoptimization_*.py."""
+supervision, whose (f) credit assignment and (g) over-optimization the report answers too, and (h) a reward model
+that keeps learning on the policy's text (--rm-refresh). Peaks and falls are read by reports/rlhf_series.py's rule,
+and the report says which verdicts it changed from the previous rule. What it measures, its claims, its figure and its
+account of the change are the modules overoptimization_*.py."""
 
 from __future__ import annotations
 
@@ -41,7 +42,8 @@ from reports.overoptimization_measures import (  # the names the report and its 
     rm_pairs,
 )
 from reports.overoptimization_process import process_claims
-from reports.rlhf_series import MIN_FALL, SMOOTH, Z, plot_rlhf_seeds, tenths
+from reports.overoptimization_refresh import refresh_lines
+from reports.rlhf_series import CLIP, MIN_FALL, SMOOTH, Z, plot_rlhf_seeds, tenths
 from results import load_runs, read_ensemble_series, read_rlhf_series
 from suites import SUITES
 
@@ -80,11 +82,12 @@ def summary_lines(folder, results):
         counts.append(f"{variant} {sum(k in fell for k in keys)} of {len(keys)} ({garbled} onto garbled text)")
     lines.append(
         f"  - **Over-optimized** (over windows of {WINDOW} iterations, the peak on their moving average over {SMOOTH};"
-        f" a rise and a fall each past {Z:g} standard errors of the noise between windows and at least {MIN_FALL:g}"
+        f" a rise and a fall each past {Z:g} standard errors of the noise between windows, a collapse's residuals left"
+        f" out, and at least {MIN_FALL:g}"
         f" gold point, the KL and the RM score not fallen past {Z:g} of theirs): {', '.join(counts)}."
     )
     claimed = claims(series, sft_of, fits, sizes, best) + ensemble_claims(series, sft_of, read_ensemble_series(folder))
-    claimed += process_claims(folder, series, sft_of, results)
+    claimed += process_claims(folder, series, sft_of, results) + refresh_lines(folder, series, sft_of)[:1]
     return lines + [f"  {line}" for line in claimed]
 
 
@@ -133,12 +136,17 @@ def write_report(folder, runs, reference, results):
         f" RM score did not end below their values at the peak by more than {Z:g} standard errors of theirs. The"
         " noise is measured between windows, each window's mean against the mean of its two neighbours (a straight"
         " trend cancels; for independent noise of std s the residual has variance 1.5 s²), so that whatever moves a"
-        f" whole window counts: a plateau's windows scatter several times more than their spread within says. {Z:g}"
-        f" standard errors keep the chance that a flat curve of 80 windows of noise shows a fall alone under 5%"
-        f" (tests/test_reports.py draws such curves); {MIN_FALL:g} gold point is five times a plateau's noise between"
-        " windows, set below the fall near one gold point of the β = 0 run that falls on well-formed text (the table"
-        " above), so that its verdict is not settled by hundredths against the minimum; the next section gives the"
-        " verdicts a minimum of 1 would move.",
+        " whole window counts: a plateau's windows scatter several times more than their spread within says. The"
+        f" residuals further from their median than {CLIP:g} robust standard deviations (1.4826 times their median"
+        " absolute deviation) are left out of it: a collapse, a step down of S, leaves two residuals of S / 2, which"
+        " would count as noise and hide it; the rms of the rest still counts the heavy tails of a plateau's noise,"
+        f" which a median alone would underrate. {Z:g} standard errors were fixed on flat curves of pure noise before"
+        " the runs were judged: on 80 windows (an rlhf-long run's) or on 10 (an rlhf run's tenths), the fall alone"
+        " passes in under 2% of Gaussian curves and under 5% of curves with t's heavy tails (4 degrees of freedom;"
+        f" tests/test_reports.py draws such curves). {MIN_FALL:g} gold point is five"
+        " times a plateau's noise between windows, set below the fall near one gold point of a β = 0 run that falls"
+        " on well-formed text (the table above), so that its verdict is not settled by hundredths against the"
+        " minimum; the next section gives the verdicts a minimum of 1 would move.",
         "",
         "Per seed:",
         "",
@@ -185,7 +193,8 @@ def write_report(folder, runs, reference, results):
     ensemble = read_ensemble_series(folder)
     lines += ensemble_claims(series, sft_of, ensemble)
     lines += process_claims(folder, series, sft_of, results)
-    lines += ["", *change_lines(series, sft_of, fits, sizes, best, ensemble)]
+    lines += refresh_lines(folder, series, sft_of)
+    lines += ["", *change_lines(folder, series, sft_of, ensemble, results)]
     lines += [
         "",
         "![gold against sqrt(KL), per panel](curves/panels.png)",

@@ -1,22 +1,24 @@
-"""The rlhf-long report's account of the rule change: every run's verdict of over-optimization and every claim read by
-the previous rule (the best single window as the peak; a rise and a fall against the spread within two windows; the
-KL and the RM score compared to the last digit) and by the current one (reports/rlhf_series.py), side by side, with
-the figures that decided each verdict that changed."""
+"""The rlhf-long report's account of the rule change: every run's verdict of over-optimization and every claim that
+reads falls, by the previous rule (the noise between windows the rms of every residual, a collapse's included) and by
+the current one (reports/rlhf_series.py: the residuals past CLIP robust standard deviations left out), side by side,
+with the figures that decided each verdict."""
 
 from __future__ import annotations
 
 import re
 
-from reports.overoptimization_claims import claims, ensemble_claims
-from reports.overoptimization_measures import CURRENT, PREVIOUS, SUITE, WINDOW
+from reports.overoptimization_claims import ensemble_claims
+from reports.overoptimization_measures import SUITE, WINDOW
+from reports.overoptimization_process import overoptimization_lines
 from reports.rlhf_series import (
+    CLIP,
+    CURRENT,
     MIN_FALL,
-    SMOOTH,
-    Z,
+    PREVIOUS,
+    RULES,
     between_window_noise,
     direct_variants,
     judge,
-    previous_judgement,
     tenths,
     verdict_of,
 )
@@ -26,7 +28,7 @@ from suites import SUITES
 # verdict; one whose words agree moved at most its numbers.
 VERDICT_WORDS = re.compile(
     r"within 2 standard errors of|above|below|not clearly lower|not lower|lower|not earlier|earlier|\d+ fell"
-    r"|in \d+ of them|in \d+ the disagreement"
+    r"|in \d+ of them|in \d+ the disagreement|did not fall|(?:rose|fell|held) (?:yes|no)"
 )
 NAMES = {"rose": "rise", "fell": "fall", "kl held": "KL change", "score held": "RM score change"}
 
@@ -34,12 +36,9 @@ NAMES = {"rose": "rise", "fell": "fall", "kl held": "KL change", "score held": "
 def reading(run, rule, direct):
     """(over-optimized, {condition: held}, {condition: (change, tolerance)}) of a run under a rule, over windows of
     WINDOW iterations: a rise and a fall in gold, and the KL's and RM score's change from the peak to the end."""
-    if rule == CURRENT:
-        read = judge(run, WINDOW)
-        fell, conditions = verdict_of(read, direct)
-        values, tolerance = read["values"], read["tolerance"]
-    else:
-        fell, conditions, values, tolerance, _ = previous_judgement(run, direct, WINDOW)
+    read = judge(run, WINDOW, rule=rule)
+    fell, conditions = verdict_of(read, direct)
+    values, tolerance = read["values"], read["tolerance"]
     (first, peak, last), kl, score = values["gold_score"], values["kl"], values["score"]
     figures = {
         "rose": (peak - first, tolerance["gold_score"][0]),
@@ -62,9 +61,9 @@ def failed(conditions, figures):
     return ", ".join(out) or "all held"
 
 
-def change_lines(series, sft_of, fits, sizes, best, ensemble):
-    """The report's section on the rule change: the noise the rules see, the per-run verdicts side by side with the
-    figures that decided them, the counts per setting, and the claims that changed their verdict."""
+def change_lines(folder, series, sft_of, ensemble, results):
+    """The report's section on the rule change: the noise each rule sees, the per-run verdicts side by side with the
+    figures that decided them, the counts per setting, and the claims that read falls, under the previous rule."""
     import numpy as np
 
     direct = direct_variants()
@@ -72,22 +71,22 @@ def change_lines(series, sft_of, fits, sizes, best, ensemble):
     variants = sorted({k[0] for k in series}, key=lambda v: (order.index(v) if v in order else len(order), v))
     ratio = []
     for run in series.values():
-        means, errors = tenths(run, "gold_score", spread=True, width=WINDOW)
-        inside = float(np.median([e for e in errors if e > 0])) if any(e > 0 for e in errors) else 0.0
-        if inside > 0:
-            ratio.append(between_window_noise(means) / inside)
+        means = tenths(run, "gold_score", width=WINDOW)
+        clipped = between_window_noise(means)
+        if clipped > 0:
+            ratio.append(between_window_noise(means, RULES[PREVIOUS][1]) / clipped)
+    (z, _), (previous_z, _) = RULES[CURRENT], RULES[PREVIOUS]
     lines = [
         "## What the change of rule moved",
         "",
-        "The previous rule read the peak as the single window of highest gold, the best of 80 noisy window means, and"
-        " judged the rise and the fall against twice the standard error of the difference from the iterations' spread"
-        " within the two windows; the KL had to end above its value at the peak and the RM score at least as high, to"
-        " the last digit. On these runs the gold's noise between windows is "
+        "The previous rule measured the noise between windows as the rms of every residual (each window against the"
+        f" mean of its two neighbours) and asked {previous_z:g} standard errors of it. A collapse, a step down of S,"
+        " leaves two residuals of S / 2, which counted as noise and hid the collapse they came from. The current rule"
+        f" leaves out the residuals further from their median than {CLIP:g} robust standard deviations (1.4826 times"
+        f" their median absolute deviation) and asks {z:g} standard errors of the rms of the rest. On these runs the"
+        " gold's noise under the previous rule is "
         + (f"{min(ratio):.1f} to {max(ratio):.1f} times (median {np.median(ratio):.1f})" if ratio else "not measured")
-        + " the standard error the spread within a window gives, so the previous rule judged falls against too small a"
-        f" noise. The current rule is stated above: a peak on moving averages of {SMOOTH} windows, a rise and a fall"
-        f" past {Z:g} standard errors of the noise between windows and at least {MIN_FALL:g} gold point, the KL and"
-        f" the RM score not fallen past {Z:g} standard errors of theirs.",
+        + " the current rule's.",
         "",
         "| setting | seed | previous rule | current rule | what failed, previous rule | what failed, current rule |",
         "|---" * 6 + "|",
@@ -111,9 +110,8 @@ def change_lines(series, sft_of, fits, sizes, best, ensemble):
     lines += [
         "",
         "A rise is the gold's change from the first window to the peak; a fall, and the KL's and the RM score's"
-        " changes, are from the peak to the end (each rule's peak and end); 'needed' gives what the rule asked of each:"
-        " a rise or fall past its tolerance, a change in KL or score not below minus its tolerance (0 under the"
-        " previous rule).",
+        " changes, are from the peak to the end; 'needed' gives what the rule asked of each: a rise or fall past its"
+        " tolerance, a change in KL or score not below minus its tolerance.",
         "",
         "Over-optimized runs per setting, previous rule → current rule: " + ", ".join(counts) + ". With a minimum"
         f" fall of 1 gold point instead of {MIN_FALL:g}, "
@@ -121,8 +119,9 @@ def change_lines(series, sft_of, fits, sizes, best, ensemble):
         + ".",
         "",
     ]
-    old = claims(series, sft_of, fits, sizes, best, PREVIOUS) + ensemble_claims(series, sft_of, ensemble, PREVIOUS)
-    new = claims(series, sft_of, fits, sizes, best) + ensemble_claims(series, sft_of, ensemble)
+    # every rule reads the peak alike: the claims that read falls, (e) and (g), are those the change can move
+    old = ensemble_claims(series, sft_of, ensemble, PREVIOUS) + overoptimization_lines(folder, series, sft_of, PREVIOUS)
+    new = ensemble_claims(series, sft_of, ensemble) + overoptimization_lines(folder, series, sft_of)
     new_of = {line[:8]: line for line in new}
     moved = []
     for line in old:
@@ -133,10 +132,11 @@ def change_lines(series, sft_of, fits, sizes, best, ensemble):
             moved.append(f"{letter} moved its numbers, not its verdict")
         else:
             moved.append(f"{letter} is unchanged")
+    if not old:
+        return lines
     lines += [
-        "The claims under the current rule are those above; under the previous rule they read as below. "
-        + "; ".join(moved)
-        + ".",
+        "The claims that read falls, under the current rule, are those above; under the previous rule they read as"
+        " below. " + "; ".join(moved) + ".",
         "",
         *old,
     ]

@@ -1,16 +1,14 @@
 """The rlhf-long report's answers to its claims, in words that follow the numbers: (a) does a weaker RM peak earlier
 and lower, (b) do runs with a KL penalty lie on the unpenalized run's curve, (c) does PPO fall below best-of-N at
 equal d, (d) does an ensemble of reward models peak later or higher than one, (e) when the policy falls, do all
-members overrate what it writes (herding), or does their disagreement rise first. Each reads peaks and falls by a
-rule (overoptimization_measures.CURRENT or PREVIOUS), so that the report can set the two side by side."""
+members overrate what it writes (herding), or does their disagreement rise first. Every rule reads the peak alike;
+(e) reads the falls by a rule (rlhf_series.CURRENT or PREVIOUS), so that the report can set the two side by side."""
 
 from __future__ import annotations
 
 import math
 
 from reports.overoptimization_measures import (
-    CURRENT,
-    PREVIOUS,
     SUITE,
     WINDOW,
     beta_of,
@@ -30,15 +28,10 @@ from reports.overoptimization_measures import (
     rm_pairs,
     single_rm_run,
 )
-from reports.rlhf_series import SMOOTH, tenths, window_means
+from reports.rlhf_series import CURRENT, SMOOTH, tenths, window_means
 from reports.stats import mean_std
 from results import ENSEMBLE_STATS
 from suites import SUITES
-
-PEAKS = {
-    CURRENT: f"on moving averages of {SMOOTH} windows of {WINDOW} iterations",
-    PREVIOUS: f"in the best single window of {WINDOW} iterations",
-}
 
 
 def verdict(values, what):
@@ -53,17 +46,17 @@ def verdict(values, what):
     return f"{word} {what} ({mean:+.2f} ± {se:.2f}, mean ± standard error over {len(finite)} seeds)"
 
 
-def claims(series, sft_of, fits, sizes, best, rule=CURRENT):
-    """The report's answers to (a), (b) and (c), in words that follow the numbers, with peaks read by `rule`."""
+def claims(series, sft_of, fits, sizes, best):
+    """The report's answers to (a), (b) and (c), in words that follow the numbers."""
     import numpy as np
 
     lines = []
-    # (a) peak and its d per RM size, from the runs (their peak under the rule) and from the fits
+    # (a) peak and its d per RM size, from the runs (their smoothed peak) and from the fits
     parts = []
     by_size = {}
     for pairs in sizes:
         keys = [k for k in series if rm_pairs(k[0]) == pairs and beta_of(k[0]) == 0 and one_outcome_rm(k[0])]
-        peaks = [peak_of(series[k], sft_of[k], rule) for k in keys]
+        peaks = [peak_of(series[k], sft_of[k]) for k in keys]
         by_size[pairs] = peaks
         rl = [v for (f, p, _), v in sorted(fits.items()) if f == "rl" and p == pairs]
         parts.append(
@@ -90,7 +83,7 @@ def claims(series, sft_of, fits, sizes, best, rule=CURRENT):
         gaps = [binned_gap(series[k], series[u], sft_of[k]) for k, u in pairs_b]
         res = [residual(series[k], sft_of[k], "rl", fits["rl", rm_pairs(u[0]), u[1]]) for k, u in pairs_b]
         d_end = [math.sqrt(max(end(series[k], "kl"), 0)) for k, _ in pairs_b]
-        d_peak = [peak_of(series[u], sft_of[u], rule)[1] for _, u in pairs_b]
+        d_peak = [peak_of(series[u], sft_of[u])[1] for _, u in pairs_b]
         lines.append(
             "- **(b) Does a KL penalty move a run along the β = 0 curve, or onto a better one?** The β > 0 runs' gold"
             " gain, in the bins of d that the same seed's β = 0 run also visited, lies "
@@ -122,7 +115,8 @@ def claims(series, sft_of, fits, sizes, best, rule=CURRENT):
 
 
 def ensemble_claims(series, sft_of, ensemble, rule=CURRENT):
-    """The report's answers to (d) and (e), from the ensemble runs and the same seeds' single-RM runs at β = 0."""
+    """The report's answers to (d) and (e), from the ensemble runs and the same seeds' single-RM runs at β = 0; (e)
+    reads the falls by `rule`."""
     lines = []
     keys = sorted(k for k in series if ensemble_of(k[0]) > 1)
     parts = []
@@ -131,8 +125,8 @@ def ensemble_claims(series, sft_of, ensemble, rule=CURRENT):
         pairs = [(k, u) for k, u in pairs if u is not None]
         if not pairs:
             continue
-        mine = [peak_of(series[k], sft_of[k], rule) for k, _ in pairs]
-        theirs = [peak_of(series[u], sft_of[u], rule) for _, u in pairs]
+        mine = [peak_of(series[k], sft_of[k]) for k, _ in pairs]
+        theirs = [peak_of(series[u], sft_of[u]) for _, u in pairs]
         higher = [m[0] - t[0] for m, t in zip(mine, theirs, strict=True)]
         later = [m[1] - t[1] for m, t in zip(mine, theirs, strict=True)]
         parts.append(
@@ -143,10 +137,8 @@ def ensemble_claims(series, sft_of, ensemble, rule=CURRENT):
     if parts:
         lines.append(
             "- **(d) Does an ensemble of reward models peak later or higher than one RM on the same pairs?** (Coste et"
-            f" al. 2023; peaks {PEAKS[rule]}, against the same seed's β = 0 run with one RM) "
-            + "; ".join(parts)
-            + "."
-            + head_lines(series, sft_of, ensemble, keys, rule)
+            f" al. 2023; peaks on moving averages of {SMOOTH} windows of {WINDOW} iterations, against the same seed's"
+            " β = 0 run with one RM) " + "; ".join(parts) + "." + head_lines(series, sft_of, ensemble, keys)
         )
     rows = []
     herded = 0
@@ -154,7 +146,7 @@ def ensemble_claims(series, sft_of, ensemble, rule=CURRENT):
     fell = fell_of(series, rule)
     for key in [k for k in keys if k in fell and k in ensemble]:
         gold = tenths(series[key], "gold_score", width=WINDOW)
-        peak, tail = peak_span(series[key], rule), end_span(len(gold), rule)
+        peak, tail = peak_span(series[key]), end_span(len(gold))
         members = ensemble[key][:, 1 + len(ENSEMBLE_STATS) :]
         windows = [window_means(member, WINDOW) for member in members.T]
         held = sum(over(w, tail) >= over(w, peak) for w in windows)
@@ -170,7 +162,7 @@ def ensemble_claims(series, sft_of, ensemble, rule=CURRENT):
             " end"
         )
     if keys:
-        fallen, by = len(rows), "the rule above" if rule == CURRENT else "the previous rule"
+        fallen, by = len(rows), "the current rule" if rule == CURRENT else "the previous rule"
         answer = (
             f"Of {len(keys)} ensemble runs, {fallen} fell ({by})"
             + (
@@ -193,7 +185,7 @@ def ensemble_claims(series, sft_of, ensemble, rule=CURRENT):
 SAME_HEAD = "-same-head"  # the variants whose members start from one zero head and differ in data order only
 
 
-def head_lines(series, sft_of, ensemble, keys, rule):
+def head_lines(series, sft_of, ensemble, keys):
     """(d) for the two kinds of member: how far apart the members are before PPO (their disagreement, the std of their
     scores, on the first rollout's responses, which are pi_SFT's), and seeded heads' peak against the same head's,
     seed by seed, for each aggregate that ran both ways."""
@@ -213,8 +205,8 @@ def head_lines(series, sft_of, ensemble, keys, rule):
         seeds = sorted(k[1] for k in keys if k[0] == variant and (seeded, k[1]) in series)
         if not seeds:
             continue
-        mine = [peak_of(series[seeded, s], sft_of[seeded, s], rule) for s in seeds]
-        theirs = [peak_of(series[variant, s], sft_of[variant, s], rule) for s in seeds]
+        mine = [peak_of(series[seeded, s], sft_of[seeded, s]) for s in seeds]
+        theirs = [peak_of(series[variant, s], sft_of[variant, s]) for s in seeds]
         higher = [m[0] - t[0] for m, t in zip(mine, theirs, strict=True)]
         later = [m[1] - t[1] for m, t in zip(mine, theirs, strict=True)]
         text += (

@@ -1,6 +1,6 @@
 """The rlhf-long report's figure: gold against d = sqrt(KL[pi || pi_SFT]) in a panel each for the KL penalty, the group
-baselines, DPO, IPO and KTO (the rlhf suite's arms), the RM size and the ensembles, with best-of-N and Gao et al.'s
-fitted forms."""
+baselines, DPO, IPO and KTO (the rlhf suite's arms), the RM size, the ensembles, process supervision and the reward
+models refreshed on the policy's text, with best-of-N and Gao et al.'s fitted forms."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from reports.overoptimization_measures import (
     ensemble_of,
     one_outcome_rm,
     points,
+    refresh_of,
     rm_pairs,
 )
 from reports.rlhf_series import fit_gao
@@ -78,6 +79,11 @@ def plot_panels(folder, series, sft_of, fits, best, results):
         ),
         ("process supervision", arms(["beta0", "process-beta0"], series) + arms(["beta0.05", "process"], short)),
     ]
+    refreshed = arms([v for v in SUITES[SUITE].variants if refresh_of(v)], series)
+    if refreshed:  # the reward models refreshed on the policy's text, beside the same ones never refreshed
+        panels.append(
+            ("reward models refreshed on π's text (β = 0)", arms(["beta0", "process-beta0"], series) + refreshed)
+        )
     panels = [(title, members) for title, members in panels if members or title.startswith("KL")]
     fig, axes = plt.subplots((len(panels) + 1) // 2, 2, figsize=(11, 5.5 * ((len(panels) + 1) // 2)), sharey=True)
     for ax in axes.flat[len(panels) :]:

@@ -1,8 +1,7 @@
 """What the rlhf-long report measures, shared by its claims, its figure and its account of the rule change: which
 reward model and KL coefficient a variant has, a run's points in bins of d = sqrt(KL[pi || pi_SFT]), Gao et al.'s
-forms, and a run's peak and end under a rule of over-optimization: the current one (reports/rlhf_series.py: a
-smoothed peak, changes judged against the noise between windows) or the previous one (the best single window, changes
-judged against the spread within windows), kept so that the report can say which verdicts the change moved."""
+forms, and a run's peak, its end, and its verdict of over-optimization under a rule (reports/rlhf_series.py: the
+current one, or the previous one, kept so that the report can say which verdicts the change moved)."""
 
 from __future__ import annotations
 
@@ -10,7 +9,7 @@ import math
 from pathlib import Path
 
 from reports.base import fmt, ordered_variants
-from reports.rlhf_series import SMOOTH, direct_variants, falls, fit_gao, judge, previous_falls, tenths
+from reports.rlhf_series import CURRENT, SMOOTH, direct_variants, falls, fit_gao, judge, tenths
 from reports.stats import mean_std
 from results import BEST_OF_N, RLHF_STATS, read_best_of_n, read_rlhf_series
 from suites import SUITES
@@ -41,9 +40,19 @@ def reward_of(variant, suite=SUITE):
     return flags[flags.index("--reward") + 1] if "--reward" in flags else "outcome"
 
 
+def refresh_of(variant, suite=SUITE):
+    """The --rm-refresh of a variant's flags: every how many iterations its reward model learns on the policy's text
+    (0 without the flag: never)."""
+    flags = SUITES[suite].variants[variant][1]
+    return int(flags[flags.index("--rm-refresh") + 1]) if "--rm-refresh" in flags else 0
+
+
 def one_outcome_rm(variant, suite=SUITE):
-    """Whether a variant learns from one outcome reward model: no ensemble, no process supervision."""
-    return ensemble_of(variant, suite) == 1 and reward_of(variant, suite) == "outcome"
+    """Whether a variant learns from one outcome reward model, fixed after stage 2: no ensemble, no process
+    supervision, no refresh."""
+    return (
+        ensemble_of(variant, suite) == 1 and reward_of(variant, suite) == "outcome" and not refresh_of(variant, suite)
+    )
 
 
 def best_of_n_folder(results, pairs):
@@ -98,23 +107,15 @@ def per_seed(values):
     return "; ".join(f"{seed}: {fmt(v)}{'†' if past else ''}" for seed, (v, past) in sorted(values.items()))
 
 
-CURRENT, PREVIOUS = "current", "previous"  # the rules a peak and a fall are read by
-
-
-def peak_span(run, rule=CURRENT):
+def peak_span(run):
     """The windows of WINDOW iterations the run's gold peak spans (first, last exclusive): the SMOOTH windows of the
-    highest moving average under the current rule, the single window of highest gold under the previous one."""
-    import numpy as np
-
-    if rule == CURRENT:
-        return judge(run, WINDOW)["span"][:2]
-    i = int(np.argmax(tenths(run, "gold_score", width=WINDOW)))
-    return i, i + 1
+    highest moving average (every rule reads the peak so)."""
+    return judge(run, WINDOW)["span"][:2]
 
 
-def end_span(count, rule=CURRENT):
-    """The windows a run's end spans, of `count`: the last SMOOTH (current rule) or the last one (previous)."""
-    return (max(0, count - SMOOTH), count) if rule == CURRENT else (count - 1, count)
+def end_span(count):
+    """The windows a run's end spans, of `count`: the last SMOOTH."""
+    return max(0, count - SMOOTH), count
 
 
 def over(means, span):
@@ -122,16 +123,16 @@ def over(means, span):
     return float(sum(means[span[0] : span[1]]) / (span[1] - span[0]))
 
 
-def peak_of(run, gold_sft, rule=CURRENT):
+def peak_of(run, gold_sft):
     """The run's gold gain over pi_SFT at its peak (the mean of the windows it spans) and the d of their mean KL."""
-    span = peak_span(run, rule)
+    span = peak_span(run)
     kl = over(tenths(run, "kl", width=WINDOW), span)
     return over(tenths(run, "gold_score", width=WINDOW), span) - gold_sft, math.sqrt(max(kl, 0.0))
 
 
 def fell_of(series, rule=CURRENT):
-    """{(variant, seed): text or reading} for each run over-optimized under the rule, over windows of WINDOW."""
-    return (falls if rule == CURRENT else previous_falls)(series, direct_variants(), WINDOW)
+    """{(variant, seed): text} for each run over-optimized under the rule, over windows of WINDOW iterations."""
+    return falls(series, direct_variants(), WINDOW, rule)
 
 
 def residual(run, gold_sft, form, params, d_max=math.inf):

@@ -87,28 +87,38 @@ def direct_variants():
 SMOOTH = 3  # windows a moving average spans: the highest of 80 single windows of pure noise sits about 2.5 of their
 # standard errors above the curve's level, and a mean of 3 has a third of the variance; 3 windows of 20 iterations
 # (3,840 responses of an rlhf-long run's 102,400) still resolve a peak that lasts that long
-Z = 3.5  # standard errors of a difference that a change must pass. Fixed on pure noise, not on the runs: on flat
-# curves of 80 independent windows the smoothed peak minus the smoothed end passes 3 standard errors in about 5% of
-# curves and 3.5 in under 2%, so that the fall alone, not only a rise and a fall together, is under 5%
+CLIP = 4.0  # the noise leaves out residuals beyond CLIP robust standard deviations (between_window_noise)
+Z = 4.0  # standard errors of a difference that a change must pass. Fixed on flat curves of pure noise, before the runs
+# were judged: on 80 or on 10 windows of Gaussian noise the fall alone passes in under 2% of curves, and of noise with
+# t's heavy tails (4 degrees of freedom, the runs' plateaus have such tails) in under 5% (tests/test_reports.py)
 # MIN_FALL: gold points a rise and a fall must pass, however quiet the run: five times the noise between the windows
 # of a plateau (about 0.1). Not 1: the one beta-0 run that falls on well-formed text falls 1.02 points, and a minimum
 # at its size would settle its verdict by hundredths, the fragility this rule is here to remove; the rlhf-long report
 # says which verdicts a minimum of 1 would change
 MIN_FALL = 0.5
+# The rules a verdict can be read by: (Z, CLIP) of the current one, and of the previous one, whose noise was the rms of
+# every residual (no clip), kept so that the reports can say which verdicts the change moved
+CURRENT, PREVIOUS = "current", "previous"
+RULES = {CURRENT: (Z, CLIP), PREVIOUS: (3.5, float("inf"))}
 
 
-def between_window_noise(means):
+def between_window_noise(means, clip=CLIP):
     """The standard deviation of a window mean around its curve, measured between windows: each window against the
     mean of its two neighbours, which takes out a straight trend; for independent noise of std s that residual has
     variance 1.5 s^2. Not the spread within windows, which misses whatever moves a whole window: a plateau's windows
-    scatter several times more than their own standard errors say. nan with fewer than 3 windows."""
+    scatter several times more than their own standard errors say. The residuals further from their median than
+    `clip` robust standard deviations (1.4826 times their median absolute deviation, a Gaussian's std) are left out:
+    a collapse, a step down of S, leaves two residuals of S / 2, which would otherwise count as noise and hide it; and
+    a median alone is no cure, since the plateaus have heavy tails. nan with fewer than 3 windows."""
     import numpy as np
 
     m = np.asarray(means, dtype=float)
     if len(m) < 3:
         return float("nan")
     residual = m[1:-1] - (m[:-2] + m[2:]) / 2
-    return float(np.sqrt(np.mean(residual**2) / 1.5))
+    distance = np.abs(residual - np.median(residual))
+    kept = residual if clip == float("inf") else residual[distance <= clip * 1.4826 * np.median(distance)]
+    return float(np.sqrt(np.mean(kept**2) / 1.5))
 
 
 def smoothed(means, width=SMOOTH):
@@ -120,14 +130,15 @@ def smoothed(means, width=SMOOTH):
     return np.convolve(m, np.ones(width) / width, mode="valid") if len(m) >= width else np.array([m.mean()])
 
 
-def judge(run, width=None, min_fall=MIN_FALL):
-    """The new rule's reading of one run, on window means of `width` iterations (a tenth of the run without it):
-    {name: (first window, smoothed peak, smoothed end)} for gold, KL and RM score at the smoothed gold peak; the
-    peak's span of windows; and each quantity's tolerance, Z between-window standard errors of the difference it is
-    judged by (gold's at least min_fall). The start is the first window alone: the policy moves fastest there, and a
-    moving average would mix the start into the rise."""
+def judge(run, width=None, min_fall=MIN_FALL, rule=CURRENT):
+    """A rule's reading of one run (RULES: the current one unless `rule` says), on window means of `width` iterations
+    (a tenth of the run without it): {name: (first window, smoothed peak, smoothed end)} for gold, KL and RM score at
+    the smoothed gold peak; the peak's span of windows; and each quantity's tolerance, Z between-window standard errors
+    of the difference it is judged by (gold's at least min_fall). The start is the first window alone: the policy
+    moves fastest there, and a moving average would mix the start into the rise."""
     import numpy as np
 
+    z, clip = RULES[rule]
     out = {"tolerance": {}, "values": {}}
     for name in ("gold_score", "kl", "score"):
         means = tenths(run, name, width=width)
@@ -135,10 +146,10 @@ def judge(run, width=None, min_fall=MIN_FALL):
         if name == "gold_score":
             peak = int(np.argmax(curve))
             out["span"] = (peak, peak + min(SMOOTH, len(means)), len(means))  # first, last (exclusive), of how many
-        noise = between_window_noise(means)
+        noise = between_window_noise(means, clip)
         k = min(SMOOTH, len(means))
         out["values"][name] = (float(means[0]), float(curve[peak]), float(curve[-1]))
-        fall, rise = Z * noise * (2 / k) ** 0.5, Z * noise * (1 + 1 / k) ** 0.5
+        fall, rise = z * noise * (2 / k) ** 0.5, z * noise * (1 + 1 / k) ** 0.5
         if name == "gold_score":
             fall, rise = max(min_fall, fall), max(min_fall, rise)
         out["tolerance"][name] = (rise, fall)
@@ -169,53 +180,22 @@ def hack(run, direct, width=None):
     return f"spam {spam:.2f}" if spam >= garbled else f"garbled {garbled:.2f}"
 
 
-def falls(series, direct=(), width=None):
-    """{(variant, seed): text} for each run over-optimized (Gao et al. 2022), by verdict_of() on windows of `width`
-    iterations (tenths without it): gold rose to its peak and fell from it, beyond the noise between windows and by
-    at least MIN_FALL gold points, while the KL to pi_SFT and the RM score did not fall beyond their noise; the RM
-    score is not asked of a variant in `direct` (DPO, KTO), which never sees the RM: Rafailov et al. (2024) find that
-    direct methods over-optimize too. The text names the hack by the last window's shares of spam and garbled text."""
+def falls(series, direct=(), width=None, rule=CURRENT):
+    """{(variant, seed): text} for each run over-optimized (Gao et al. 2022), by verdict_of() on a rule's reading
+    (judge()) of windows of `width` iterations (tenths without it): gold rose to its peak and fell from it, beyond the
+    noise between windows and by at least MIN_FALL gold points, while the KL to pi_SFT and the RM score did not fall
+    beyond their noise; the RM score is not asked of a variant in `direct` (DPO, KTO), which never sees the RM:
+    Rafailov et al. (2024) find that direct methods over-optimize too. The text names the hack by the last window's
+    shares of spam and garbled text."""
     out = {}
     for key, run in sorted(series.items()):
-        reading = judge(run, width)
+        reading = judge(run, width, rule=rule)
         if verdict_of(reading, key[0] in direct)[0]:
             gold, kl = reading["values"]["gold_score"], reading["values"]["kl"]
             out[key] = (
                 f"gold {gold[1]:.1f} to {gold[2]:.1f} as KL went {kl[1]:.1f} to {kl[2]:.1f};"
                 f" {hack(run, key[0] in direct, width)}"
             )
-    return out
-
-
-def previous_judgement(run, direct=False, width=None):
-    """The rule before this one, kept to show which verdicts it changed: the peak is the single window of highest gold;
-    gold rose from the first window and fell to the last by more than twice the standard error of the difference, from
-    the iterations' spread within the two windows; the KL ended above its value at the peak; the RM score ended at
-    least as high (but for `direct`). (over-optimized, {condition: held}, {name: (first, peak, last)}, {name:
-    tolerance}, the peak window)."""
-    (gold, error) = tenths(run, "gold_score", spread=True, width=width)
-    values = {name: tenths(run, name, width=width) for name in ("kl", "score")}
-    peak = max(range(len(gold)), key=gold.__getitem__)
-    noise = [2 * (error[peak] ** 2 + e**2) ** 0.5 for e in error]  # of a difference from the peak
-    values = {name: (v[0], v[peak], v[-1]) for name, v in [("gold_score", gold), *values.items()]}
-    conditions = {
-        "rose": gold[peak] - gold[0] > noise[0],
-        "fell": gold[peak] - gold[-1] > noise[-1],
-        "kl held": values["kl"][2] > values["kl"][1],
-        "score held": direct or values["score"][2] >= values["score"][1],
-    }
-    tolerance = {"gold_score": (noise[0], noise[-1]), "kl": (0.0, 0.0), "score": (0.0, 0.0)}
-    return all(conditions.values()), conditions, values, tolerance, peak
-
-
-def previous_falls(series, direct=(), width=None):
-    """{(variant, seed): text} for each run the previous rule (previous_judgement) called over-optimized."""
-    out = {}
-    for key, run in sorted(series.items()):
-        fell, _, values, _, _ = previous_judgement(run, key[0] in direct, width)
-        if fell:
-            (_, peak, last), kl = values["gold_score"], values["kl"]
-            out[key] = f"gold {peak:.1f} to {last:.1f} as KL grew {kl[1]:.1f} to {kl[2]:.1f}"
     return out
 
 
