@@ -194,7 +194,7 @@ def test_the_weight_can_fail():
 REACHED = {
     # and its redesign for reading: PPO's path first, each successor a function found by name, the logging in a class
     # under MACHINERY, and the traps of a pasted copy removed as in the gym scripts (59 lines)
-    ("ppo_rlhf.py", "lines"): 1030,  # DPO, the hack's metrics; run dirs; IPO, one-prompt pairs;
+    ("ppo_rlhf.py", "lines"): 1042,  # DPO, the hack's metrics; run dirs; IPO, one-prompt pairs;
     # KTO and reward-model ensembles (whose budget was 815); KTO's KL batch built from each minibatch, z0
     # logged, and the members' own heads with --rm-same-head, the ablation that reproduces the earlier runs (16);
     # process supervision (whose budget was 40): its labels, its reward model, its rewards at the clauses' ends,
