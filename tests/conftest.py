@@ -113,6 +113,30 @@ def script(request):
 ONE_THREAD = ["--torch-threads", "1"]
 
 
+def call_main(module, argv, monkeypatch, starts=("train",), checked=True):
+    """module.main() on this command line, with what it would start replaced (the functions named in `starts`; and
+    main()'s signal handlers, which would stay in pytest's way): the Args the last one started got, None if none
+    started, or the code main() exited with (a refusal). checked=False replaces check_args too."""
+    import torch
+
+    started = []
+    monkeypatch.setattr(sys, "argv", [module.SCRIPT, *map(str, argv)])
+    for name in starts:
+        if hasattr(module, name):
+            monkeypatch.setattr(module, name, lambda args, *rest: started.append(args))
+    if not checked:
+        monkeypatch.setattr(module, "check_args", lambda args: None)
+    monkeypatch.setattr(module.signal, "signal", lambda *args: None)
+    threads = torch.get_num_threads()
+    try:
+        module.main()
+    except SystemExit as e:
+        return e.code
+    finally:
+        torch.set_num_threads(threads)
+    return started[-1] if started else None
+
+
 def run_cli(script, *args, cwd, timeout=300, check=True):
     """Run a script's real command line in `cwd`, with one torch thread; return the CompletedProcess."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}  # MUJOCO_GL is left to the scripts' own default

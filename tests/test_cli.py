@@ -17,6 +17,7 @@ from conftest import (
     ROOT,
     SCRIPTS,
     TINY,
+    call_main,
     load_script,
     needs_env,
     run_cli,
@@ -369,23 +370,9 @@ def test_divergence_stops_with_one_line_and_keeps_the_last_finite_checkpoint(scr
     assert advice, lines[0]
     smaller = [advice[1], "0.0001"]
     new_run = ["--env-id", TINY[script]["env_id"], *TINY[script]["tiny"], *smaller, "--run-dir", tmp_path / "anew"]
-    assert main_exit_code(script, new_run, monkeypatch) is None
-    assert main_exit_code(script, ["--resume", path, *smaller], monkeypatch) == 2
-
-
-def main_exit_code(script, argv, monkeypatch):
-    """main() on this command line, with train() replaced: the code it exits with, or None once training starts."""
     module = load_script(script)
-    monkeypatch.setattr(sys, "argv", [script, *map(str, argv), *ONE_THREAD])
-    monkeypatch.setattr(module, "train", lambda args, stop=(): None)
-    monkeypatch.setattr(module.signal, "signal", lambda *args: None)  # main()'s handlers stay out of pytest's way
-    threads = torch.get_num_threads()
-    try:
-        module.main()
-    except SystemExit as e:
-        return e.code
-    finally:
-        torch.set_num_threads(threads)
+    assert call_main(module, [*new_run, *ONE_THREAD], monkeypatch).learning_rate == 0.0001  # training starts
+    assert call_main(module, ["--resume", path, *smaller, *ONE_THREAD], monkeypatch) == 2
 
 
 @pytest.mark.parametrize("script", ["ppo_continuous.py"])

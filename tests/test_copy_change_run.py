@@ -12,7 +12,7 @@ import typing
 
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli, tb_scalars, train_tiny
+from conftest import ONE_THREAD, ROOT, TINY, call_main, load_script, run_cli, tb_scalars, train_tiny
 
 GYM_SCRIPTS = ["ppo_continuous.py", "ppo_atari.py", "ppo_kl_penalty.py"]
 MUJOCO_SCRIPTS = ["ppo_continuous.py", "ppo_kl_penalty.py"]
@@ -317,30 +317,12 @@ def another_value(field, value, tmp_path):
     return [flag, f"other-{field.name}"]
 
 
-def resume_with(module, argv, monkeypatch):
-    """main() on this command line, with what it would start replaced: the Args that train(), evaluate() or
-    start_tracking() got, or the exit code of a refusal."""
-    started = []
-    monkeypatch.setattr(sys, "argv", [module.SCRIPT, *map(str, argv)])
-    for name in ("train", "evaluate", "start_tracking"):
-        if hasattr(module, name):
-            monkeypatch.setattr(module, name, lambda args, *rest: started.append(args))
-    monkeypatch.setattr(module, "check_args", lambda args: None)
-    monkeypatch.setattr(module.signal, "signal", lambda *args: None)  # main()'s handlers stay out of pytest's way
-    threads = torch.get_num_threads()
-    try:
-        module.main()
-    except SystemExit as e:
-        return e.code
-    finally:
-        torch.set_num_threads(threads)
-    return started[-1]
-
-
 # The flags that change how a run goes on or where it is logged, never what it computes: typed with --resume, each
 # applies. Any other field of Args, a hyperparameter, is refused.
 RUNTIME = {"device", "compile", "torch_threads", "save_every", "resume", "run_dir", "exp_name", "track"}
 RUNTIME |= {"wandb_project_name", "wandb_entity", "capture_video", "eval_checkpoint", "eval_episodes"}
+# What main() may start once the command line is read: each is replaced, to see the Args it would get.
+STARTS = ("train", "evaluate", "start_tracking")
 
 
 def check_the_two_lists(module, checkpoint, tmp_path, monkeypatch, capsys):
@@ -349,7 +331,7 @@ def check_the_two_lists(module, checkpoint, tmp_path, monkeypatch, capsys):
     assert set(module.RUNTIME_FIELDS) == RUNTIME & {field.name for field in fields}
     for field in fields:
         typed = another_value(field, saved[field.name], tmp_path)
-        got = resume_with(module, ["--resume", checkpoint, *typed], monkeypatch)
+        got = call_main(module, ["--resume", checkpoint, *typed], monkeypatch, STARTS, checked=False)
         err = capsys.readouterr().err.strip().splitlines()
         if field.name in module.RUNTIME_FIELDS:
             assert not isinstance(got, int | str | None), (field.name, err)

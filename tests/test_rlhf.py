@@ -801,11 +801,9 @@ def test_dpo_runs_from_the_command_line_and_measures_fresh_samples(method, tmp_p
         assert steps.tolist() == [16, 32, 48, 64] and (z0 >= 0).all() and (z0 >= mismatched - 1e-6).all()
 
 
-def test_a_stopped_dpo_run_resumes_bit_for_bit(tmp_path):
-    """DPO's pairs are drawn with stage 2's seed before stage 3's random state is set or restored: a run stopped at its
-    first checkpoint and resumed ends where an uninterrupted one does; also from a checkpoint whose RM-accuracy pool
-    has no prompts, as before the accuracy counted pairs to one prompt."""
-    flags = {"dpo": True, "kl_coef": 0.1, "save_every": 2}
+def whole_and_stopped(tmp_path, flags):
+    """A tiny run with these flags to its end in tmp_path/whole, and the same run stopped in tmp_path/cut once its
+    first checkpoint is on disk; returns the whole run's agent."""
     whole, _ = rlhf.train(rlhf_tiny_args(tmp_path, "whole", **flags))
 
     class AtFirstCheckpoint:
@@ -814,6 +812,15 @@ def test_a_stopped_dpo_run_resumes_bit_for_bit(tmp_path):
 
     with pytest.raises(rlhf.Stopped):
         rlhf.train(rlhf_tiny_args(tmp_path, "cut", **flags), AtFirstCheckpoint())
+    return whole
+
+
+def test_a_stopped_dpo_run_resumes_bit_for_bit(tmp_path):
+    """DPO's pairs are drawn with stage 2's seed before stage 3's random state is set or restored: a run stopped at its
+    first checkpoint and resumed ends where an uninterrupted one does; also from a checkpoint whose RM-accuracy pool
+    has no prompts, as before the accuracy counted pairs to one prompt."""
+    flags = {"dpo": True, "kl_coef": 0.1, "save_every": 2}
+    whole = whole_and_stopped(tmp_path, flags)
     checkpoint = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)
     assert checkpoint["iteration"] == 2 and checkpoint["rm_pool"].shape[0] == 3
     torch.save(checkpoint | {"rm_pool": checkpoint["rm_pool"][:2]}, tmp_path / "cut" / "checkpoint.pt")  # (score, gold)
@@ -1069,14 +1076,7 @@ def test_a_run_with_refreshes_stopped_and_resumed_ends_as_an_uninterrupted_one(t
     """The refreshed reward model, its optimizer and the labels counted go into the checkpoint: a run stopped at its
     first checkpoint and resumed ends bit for bit where an uninterrupted one does."""
     flags = {"rm_refresh": 1, "kl_coef": 0.0, "save_every": 2}
-    whole, _ = rlhf.train(rlhf_tiny_args(tmp_path, "whole", **flags))
-
-    class AtFirstCheckpoint:
-        def __bool__(self):
-            return (tmp_path / "cut" / "checkpoint.pt").exists()
-
-    with pytest.raises(rlhf.Stopped):
-        rlhf.train(rlhf_tiny_args(tmp_path, "cut", **flags), AtFirstCheckpoint())
+    whole = whole_and_stopped(tmp_path, flags)
     assert torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)["iteration"] == 2
     resumed, _ = rlhf.train(rlhf_tiny_args(tmp_path, "cut", resume=str(tmp_path / "cut" / "checkpoint.pt"), **flags))
     for name, weight in whole.state_dict().items():

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, TINY, load_script, run_cli
+from conftest import ONE_THREAD, ROOT, TINY, call_main, load_script, run_cli
 
 SCRIPT = "ppo_rlhf.py"
 rlhf = load_script(SCRIPT)
@@ -45,32 +45,15 @@ def a_checkpoint(path, module=rlhf, **saved):
     return args
 
 
-def run_main(module, argv, monkeypatch):
-    """main() with this command line and train() replaced: the Args that train() gets, or the SystemExit's code
-    and its stderr lines."""
-    trained = []
-    monkeypatch.setattr(sys, "argv", [module.SCRIPT, *map(str, argv)])
-    monkeypatch.setattr(module, "train", lambda args, stop=(): trained.append(args))
-    monkeypatch.setattr(module.signal, "signal", lambda *args: None)  # main()'s handlers stay out of pytest's way
-    threads = torch.get_num_threads()
-    try:
-        module.main()
-    except SystemExit as e:
-        return e.code
-    finally:
-        torch.set_num_threads(threads)
-    return trained[0]
-
-
 def test_a_hyperparameter_typed_with_resume_is_refused_and_a_runtime_flag_applied(tmp_path, monkeypatch, capsys):
     saved = a_checkpoint(tmp_path / "checkpoint.pt")
     resume = ["--resume", tmp_path / "checkpoint.pt"]
     for typed in (["--learning-rate", "0.123"], ["--seed", "1"]):  # --seed 1 is Args' default, not the run's 5
-        assert run_main(rlhf, [*resume, *typed], monkeypatch) == 2
+        assert call_main(rlhf, [*resume, *typed], monkeypatch) == 2
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and f"{typed[0]} {typed[1]}" in lines[0] and "resumed run keeps" in lines[0], lines
     # The checkpoint's own value typed again changes nothing; a runtime flag reaches train(); the rest is the run's.
-    args = run_main(
+    args = call_main(
         rlhf, [*resume, "--learning-rate", saved.learning_rate, "--save-every", 7, "--device", "cpu"], monkeypatch
     )
     assert (args.save_every, args.device, args.learning_rate, args.seed, args.d_model) == (7, "cpu", 3e-4, 5, 16)
@@ -82,13 +65,13 @@ def test_a_checkpoint_with_a_field_args_no_longer_has_is_refused_in_one_line(tmp
     checkpoint = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     checkpoint["args"]["aux_coef"] = 0.5  # written by a copy that had this flag
     torch.save(checkpoint, tmp_path / "renamed-field.pt")
-    assert run_main(rlhf, ["--resume", tmp_path / "renamed-field.pt"], monkeypatch) == 2
+    assert call_main(rlhf, ["--resume", tmp_path / "renamed-field.pt"], monkeypatch) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "error:" in lines[0] and "aux_coef" in lines[0], lines
     # A field that an older checkpoint lacks takes its default.
     del checkpoint["args"]["aux_coef"], checkpoint["args"]["uwo_coef"]
     torch.save(checkpoint, tmp_path / "older.pt")
-    args = run_main(rlhf, ["--resume", tmp_path / "older.pt"], monkeypatch)
+    args = call_main(rlhf, ["--resume", tmp_path / "older.pt"], monkeypatch)
     assert args.uwo_coef == rlhf.Args().uwo_coef and args.seed == 5
 
 
@@ -110,7 +93,7 @@ def test_a_renamed_copy_resumes_its_own_and_this_files_checkpoints_and_refuses_a
     assert copy.load_checkpoint(str(tmp_path / "by-the-script.pt"), copy.Args())[1].seed == 5
     assert copy.load_checkpoint(str(tmp_path / "by-the-copy.pt"), copy.Args())[1].seed == 6
     assert rlhf.load_checkpoint(str(tmp_path / "by-the-copy.pt"), rlhf.Args())[1].seed == 6
-    assert run_main(copy, ["--resume", tmp_path / "by-the-script.pt"], monkeypatch).seed == 5
+    assert call_main(copy, ["--resume", tmp_path / "by-the-script.pt"], monkeypatch).seed == 5
     torch.save({"format": "ppo-checkpoint-v1", "script": "ppo_continuous.py", "args": {}}, tmp_path / "foreign.pt")
     with pytest.raises(ValueError, match="not a checkpoint written by ppo_rlhf.py"):
         copy.load_checkpoint(str(tmp_path / "foreign.pt"), copy.Args())
@@ -124,10 +107,10 @@ def test_a_copy_with_another_network_refuses_the_scripts_checkpoints_in_one_line
     first = "blocks.layers.0.linear1.weight [64, 16] where this script's has blocks.layers.0.linear1.weight [32, 16]"
     network = ["--d-model", 16, "--n-layer", 1, "--n-head", 2]
     for argv in (["--resume", tmp_path / "checkpoint.pt"], ["--sft-checkpoint", tmp_path / "sft.pt", *network]):
-        assert run_main(copy, [*argv, "--run-dir", tmp_path / "new"], monkeypatch) == 2
+        assert call_main(copy, [*argv, "--run-dir", tmp_path / "new"], monkeypatch) == 2
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and f"holds another network: {first}" in lines[0], lines
-        assert run_main(rlhf, [*argv, "--run-dir", tmp_path / "new"], monkeypatch).d_model == 16  # the script's own
+        assert call_main(rlhf, [*argv, "--run-dir", tmp_path / "new"], monkeypatch).d_model == 16  # the script's own
     assert not (tmp_path / "new").exists()
 
 
