@@ -1091,6 +1091,8 @@ def test_the_overoptimization_report_answers_whether_a_refreshed_reward_model_re
     assert [c.strip() for c in rows["ens4-mean"]][:3] == ["outcome × 4", "0", "4,096"]
     assert [c.strip() for c in rows["beta0.05"]][1:3] == ["0.05", "4,096"]
     assert not over.measures.one_outcome_rm("refresh8-beta0") and over.measures.refresh_of("refresh8-beta0") == 8
+    labels = next(line for line in text.splitlines() if line.startswith("- **The labels each cost.**"))
+    assert "10,002 ± 1 clause labels (mean ± std over 3 reward models)" in labels  # a refreshed twin's RM counted once
     assert (folder / "curves" / "panels.png").exists()
 
 

@@ -156,7 +156,10 @@ def overoptimization_lines(folder, series, sft_of, rule=CURRENT):
 def label_lines(folder):
     """What each reward model learned from, per seed: the process RM's clause labels against the comparisons the
     outcome RM learned from, on the same responses."""
-    runs = [r for r in load_runs(folder) if "rm_clause_labels" in r.meta]
+    # Each stage-2 reward model once: arms that share a seed and a number of pairs (a process arm and its refreshed
+    # twin) start from the same one, which would otherwise be counted twice.
+    runs = {(r.seed, r.meta["rm_train_pairs"]): r for r in load_runs(folder) if "rm_clause_labels" in r.meta}
+    runs = list(runs.values())
     if not runs:
         return []
     labels = [int(r.meta["rm_clause_labels"]) for r in runs]
@@ -164,8 +167,8 @@ def label_lines(folder):
     accuracy = [float(r.meta["rm_held_out_clause_accuracy"]) for r in runs]
     return [
         f"- **The labels each cost.** The process RM learned from {cell(labels)} clause labels (mean ± std over"
-        f" {len(runs)} seeds), one for each clause of the {2 * min(pairs):,}–{2 * max(pairs):,} responses of the"
-        f" {min(pairs):,}–{max(pairs):,} pairs the outcome RM compares, and rated {cell(accuracy)} of the held-out"
+        f" {len(runs)} reward models), one for each clause of the {2 * min(pairs):,}–{2 * max(pairs):,} responses of"
+        f" the {min(pairs):,}–{max(pairs):,} pairs the outcome RM compares, and rated {cell(accuracy)} of the held-out"
         " pairs' clauses good or bad as gold does. The two are compared at equal texts, not at equal labelling"
         " effort: a clause label asks a reader for a number, a comparison for a choice between two whole responses."
     ]
