@@ -162,6 +162,26 @@ def train_tiny(script, cwd, name="run", *extra):
     return run_dir, run_cli(script, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", run_dir, *extra, cwd=cwd)
 
 
+def script_at(commit, script, folder):
+    """The script as it was at `commit`, written to folder/<script> (for the checkpoints an earlier version wrote)."""
+    proc = subprocess.run(["git", "show", f"{commit}:{script}"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, f"this test needs the git history of commit {commit}: {proc.stderr}"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / script).write_text(proc.stdout)
+    return folder / script
+
+
+def roll_back(path):
+    """Rolls the checkpoint at path back one iteration, for a resumed run to train again; returns what it saved."""
+    import torch
+
+    checkpoint = torch.load(path, weights_only=True)
+    checkpoint["iteration"] -= 1
+    checkpoint["global_step"] -= checkpoint["global_step"] // (checkpoint["iteration"] + 1)
+    torch.save(checkpoint, path)
+    return checkpoint
+
+
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory):
     """The tiny training run of a script, made once per test process and shared by the tests that only read it

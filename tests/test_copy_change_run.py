@@ -12,7 +12,18 @@ import typing
 
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, TINY, call_main, load_script, run_cli, tb_scalars, train_tiny
+from conftest import (
+    ONE_THREAD,
+    ROOT,
+    TINY,
+    call_main,
+    load_script,
+    roll_back,
+    run_cli,
+    script_at,
+    tb_scalars,
+    train_tiny,
+)
 
 GYM_SCRIPTS = ["ppo_continuous.py", "ppo_atari.py", "ppo_kl_penalty.py"]
 MUJOCO_SCRIPTS = ["ppo_continuous.py", "ppo_kl_penalty.py"]
@@ -374,18 +385,11 @@ OLD = "45c9356"  # a commit before checkpoints were checked against the network 
 
 @pytest.mark.parametrize("script", GYM_SCRIPTS)
 def test_a_checkpoint_written_at_the_earlier_commit_resumes(script, tmp_path):
-    old = tmp_path / "old" / script
-    old.parent.mkdir()
-    proc = subprocess.run(["git", "show", f"{OLD}:{script}"], cwd=ROOT, capture_output=True, text=True)
-    assert proc.returncode == 0, f"this test needs the git history of commit {OLD}: {proc.stderr}"
-    old.write_text(proc.stdout)
+    old = script_at(OLD, script, tmp_path / "old")
     cfg = TINY[script]
     run_copy(old, "--env-id", cfg["env_id"], *cfg["tiny"], "--run-dir", tmp_path / "run", cwd=tmp_path)
     path = tmp_path / "run" / "checkpoint.pt"
-    checkpoint = torch.load(path, weights_only=True)
-    checkpoint["iteration"] -= 1  # rolled back one iteration, for the resumed run to train
-    checkpoint["global_step"] -= checkpoint["global_step"] // (checkpoint["iteration"] + 1)
-    torch.save(checkpoint, path)
+    checkpoint = roll_back(path)
     proc = run_cli(script, "--resume", path, cwd=tmp_path)
     assert f"resuming {tmp_path / 'run'} at step {checkpoint['global_step']:,}" in proc.stdout, proc.stdout
     assert torch.load(path, weights_only=True)["iteration"] == checkpoint["iteration"] + 1

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 import torch
-from conftest import ONE_THREAD, ROOT, TINY, call_main, load_script, run_cli
+from conftest import ONE_THREAD, ROOT, TINY, call_main, load_script, roll_back, run_cli, script_at
 
 SCRIPT = "ppo_rlhf.py"
 rlhf = load_script(SCRIPT)
@@ -118,18 +118,12 @@ OLD = "45c9356"  # a commit before checkpoints were checked against the networks
 
 
 def test_a_checkpoint_written_at_the_earlier_commit_resumes(tmp_path):
-    proc = subprocess.run(["git", "show", f"{OLD}:{SCRIPT}"], cwd=ROOT, capture_output=True, text=True)
-    assert proc.returncode == 0, f"this test needs the git history of commit {OLD}: {proc.stderr}"
-    (tmp_path / "old").mkdir()
-    (tmp_path / "old" / SCRIPT).write_text(proc.stdout)
-    run = [sys.executable, str(tmp_path / "old" / SCRIPT), *TINY[SCRIPT]["tiny"], "--run-dir", str(tmp_path / "run")]
+    old = script_at(OLD, SCRIPT, tmp_path / "old")
+    run = [sys.executable, str(old), *TINY[SCRIPT]["tiny"], "--run-dir", str(tmp_path / "run")]
     proc = subprocess.run([*run, *ONE_THREAD], cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     path = tmp_path / "run" / "checkpoint.pt"
-    checkpoint = torch.load(path, weights_only=True)
-    checkpoint["iteration"] -= 1  # rolled back one iteration, for the resumed run to train
-    checkpoint["global_step"] -= checkpoint["global_step"] // (checkpoint["iteration"] + 1)
-    torch.save(checkpoint, path)
+    checkpoint = roll_back(path)
     proc = run_cli(SCRIPT, "--resume", path, cwd=tmp_path)
     assert f"at step {checkpoint['global_step']:,} (iteration {checkpoint['iteration']})" in proc.stdout, proc.stdout
     assert torch.load(path, weights_only=True)["iteration"] == checkpoint["iteration"] + 1
