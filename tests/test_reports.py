@@ -808,6 +808,20 @@ def test_the_fall_rule_calls_a_step_collapse_whose_residuals_the_previous_rule_c
     assert called >= 0.99 and previous < 0.5, (called, previous)
 
 
+def test_a_refreshed_reward_model_whose_score_fell_with_the_gold_does_not_hide_the_fall():
+    """The RM score must hold for a fall to be over-optimization, but a refreshed reward model's score at the end is a
+    later model's than at the peak: one that learned to score the fallen text low would otherwise hide the fall its
+    earlier self led to. The same curves are a fall for refresh8-beta0 and not for beta0, whose one RM scored both."""
+    windows = 80
+    gold = np.where(np.arange(windows) < 40, 8.0, -6.0)
+    gold[:5] = [2.0, 4.0, 6.0, 7.0, 7.5]  # the rise
+    score = np.where(np.arange(windows) < 40, 10.0, 3.0)  # the refreshed model scores the fallen text low
+    (run,) = one_window_runs([gold], lambda i: np.linspace(2, 20, windows), lambda i: score).values()
+    fell = rlhf_series.falls({("refresh8-beta0", 1): run, ("beta0", 1): run}, width=1)
+    assert set(fell) == {("refresh8-beta0", 1)}, fell
+    assert rlhf_series.refreshed("process-refresh8-beta0") and not rlhf_series.refreshed("process-beta0")
+
+
 def test_the_fall_rule_still_calls_a_fall_of_the_size_seen_at_beta_0():
     """The committed beta-0 runs (4,096 pairs) fall from their peak to their end by some amount each, read as the
     rule reads them; the median of the three is the size of fall seen at beta 0. Drawn 200 times on a curve that rises

@@ -84,7 +84,8 @@ def summary_lines(folder, results):
         f"  - **Over-optimized** (over windows of {WINDOW} iterations, the peak on their moving average over {SMOOTH};"
         f" a rise and a fall each past {Z:g} standard errors of the noise between windows, a collapse's residuals left"
         f" out, and at least {MIN_FALL:g}"
-        f" gold point, the KL and the RM score not fallen past {Z:g} of theirs): {', '.join(counts)}."
+        f" gold point, the KL and the RM score not fallen past {Z:g} of theirs, the score not asked of a reward model"
+        f" refreshed on the policy's text): {', '.join(counts)}."
     )
     claimed = claims(series, sft_of, fits, sizes, best) + ensemble_claims(series, sft_of, read_ensemble_series(folder))
     claimed += process_claims(folder, series, sft_of, results) + refresh_lines(folder, series, sft_of)[:1]

@@ -19,6 +19,7 @@ from reports.rlhf_series import (
     between_window_noise,
     direct_variants,
     judge,
+    refreshed,
     tenths,
     verdict_of,
 )
@@ -33,11 +34,11 @@ VERDICT_WORDS = re.compile(
 NAMES = {"rose": "rise", "fell": "fall", "kl held": "KL change", "score held": "RM score change"}
 
 
-def reading(run, rule, direct):
+def reading(run, rule, unscored):
     """(over-optimized, {condition: held}, {condition: (change, tolerance)}) of a run under a rule, over windows of
     WINDOW iterations: a rise and a fall in gold, and the KL's and RM score's change from the peak to the end."""
     read = judge(run, WINDOW, rule=rule)
-    fell, conditions = verdict_of(read, direct)
+    fell, conditions = verdict_of(read, unscored)
     values, tolerance = read["values"], read["tolerance"]
     (first, peak, last), kl, score = values["gold_score"], values["kl"], values["score"]
     figures = {
@@ -93,7 +94,8 @@ def change_lines(folder, series, sft_of, ensemble, results):
     ]
     verdicts = {}
     for key in sorted(series, key=lambda k: (variants.index(k[0]), k[1])):
-        old, new = (reading(series[key], rule, key[0] in direct) for rule in (PREVIOUS, CURRENT))
+        unscored = key[0] in direct or refreshed(key[0])
+        old, new = (reading(series[key], rule, unscored) for rule in (PREVIOUS, CURRENT))
         verdicts[key] = old[0], new[0]
         mark = " (changed)" if old[0] != new[0] else ""
         lines.append(
@@ -101,7 +103,8 @@ def change_lines(folder, series, sft_of, ensemble, results):
             f" {failed(*old[1:])} | {failed(*new[1:])} |"
         )
     # how much the minimum decides: the verdicts that a minimum of 1 gold point, not MIN_FALL, would change
-    strict = [k for k in verdicts if verdict_of(judge(series[k], WINDOW, 1.0), k[0] in direct)[0] != verdicts[k][1]]
+    unscored = {k: k[0] in direct or refreshed(k[0]) for k in verdicts}
+    strict = [k for k in verdicts if verdict_of(judge(series[k], WINDOW, 1.0), unscored[k])[0] != verdicts[k][1]]
     counts = []
     for variant in variants:
         keys = [k for k in verdicts if k[0] == variant]

@@ -101,7 +101,9 @@ def refresh_lines(folder, series, sft_of):
         " labels?** (Bai et al. 2022's iterated online RLHF; Llama 2's reward models, retrained on each new policy's"
         " samples. Every K iterations, pairs of the policy's current responses to one prompt are labelled by the gold"
         " comparisons, or a process RM's clauses by their gold, that labelled stage 2's data, and the reward model"
-        " trains on them for a few steps.) "
+        " trains on them for a few steps. A refreshed run is judged on its gold and its KL alone: its reward model's"
+        " score at the end is a later model's than the one that scored the peak, so whether that score held is not"
+        " asked.) "
         + ("; ".join(answers) + "." if answers else "No refreshed run has its unrefreshed run beside it.")
         + " The table sets them beside the KL leash, the ensembles, and a reward model fitted once to more pairs: the"
         " comparisons drawn are those gold was asked for (ties and the held-out tenth among them), stage 2's and the"

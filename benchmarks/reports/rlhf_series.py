@@ -81,6 +81,13 @@ def direct_variants():
     return {variant for variant, (_, flags) in SUITES["rlhf"].variants.items() if {"--dpo", "--kto"} & set(flags)}
 
 
+def refreshed(variant):
+    """Whether a variant's reward model keeps learning on the policy's text (--rm-refresh, in either RLHF suite): its
+    score at the end is then a later model's than the one that scored the peak, and the two are not compared."""
+    suites = (SUITES["rlhf"], SUITES["rlhf-long"])
+    return any("--rm-refresh" in suite.variants[variant][1] for suite in suites if variant in suite.variants)
+
+
 # Over-optimization is judged so that no single noisy window decides it. A run's gold, KL and RM score are read as
 # window means; the peak is found on their moving average over SMOOTH windows; every change is judged against the
 # noise between windows (below), times Z, and a change in gold must also pass MIN_FALL gold points.
@@ -156,17 +163,19 @@ def judge(run, width=None, min_fall=MIN_FALL, rule=CURRENT):
     return out
 
 
-def verdict_of(reading, direct=False):
+def verdict_of(reading, unscored=False):
     """Whether a reading (judge()) is over-optimization, and the conditions: gold rose from the first window to the
     peak and fell from the peak to the end, each by more than its tolerance; the KL did not end lower than at the peak
-    by more than its tolerance; nor the RM score, but for a method that never sees the RM (`direct`)."""
+    by more than its tolerance; nor the RM score, unless it is not asked (`unscored`): of a method that never sees the
+    RM, or of a reward model refreshed on the policy's text, whose score at the end is another model's than at the
+    peak. A refreshed model that learns to score fallen text low does not undo the fall its earlier self led to."""
     values, tolerance = reading["values"], reading["tolerance"]
     first, peak, last = values["gold_score"]
     conditions = {
         "rose": peak - first > tolerance["gold_score"][0],
         "fell": peak - last > tolerance["gold_score"][1],
         "kl held": values["kl"][2] > values["kl"][1] - tolerance["kl"][1],
-        "score held": direct or values["score"][2] >= values["score"][1] - tolerance["score"][1],
+        "score held": unscored or values["score"][2] >= values["score"][1] - tolerance["score"][1],
     }
     return all(conditions.values()), conditions
 
@@ -185,12 +194,13 @@ def falls(series, direct=(), width=None, rule=CURRENT):
     (judge()) of windows of `width` iterations (tenths without it): gold rose to its peak and fell from it, beyond the
     noise between windows and by at least MIN_FALL gold points, while the KL to pi_SFT and the RM score did not fall
     beyond their noise; the RM score is not asked of a variant in `direct` (DPO, KTO), which never sees the RM:
-    Rafailov et al. (2024) find that direct methods over-optimize too. The text names the hack by the last window's
+    Rafailov et al. (2024) find that direct methods over-optimize too; nor of one whose RM is refreshed (refreshed()).
+    The text names the hack by the last window's
     shares of spam and garbled text."""
     out = {}
     for key, run in sorted(series.items()):
         reading = judge(run, width, rule=rule)
-        if verdict_of(reading, key[0] in direct)[0]:
+        if verdict_of(reading, key[0] in direct or refreshed(key[0]))[0]:
             gold, kl = reading["values"]["gold_score"], reading["values"]["kl"]
             out[key] = (
                 f"gold {gold[1]:.1f} to {gold[2]:.1f} as KL went {kl[1]:.1f} to {kl[2]:.1f};"
