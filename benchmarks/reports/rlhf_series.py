@@ -195,8 +195,7 @@ def falls(series, direct=(), width=None, rule=CURRENT):
     noise between windows and by at least MIN_FALL gold points, while the KL to pi_SFT and the RM score did not fall
     beyond their noise; the RM score is not asked of a variant in `direct` (DPO, KTO), which never sees the RM:
     Rafailov et al. (2024) find that direct methods over-optimize too; nor of one whose RM is refreshed (refreshed()).
-    The text names the hack by the last window's
-    shares of spam and garbled text."""
+    The text names the hack by the last window's shares of spam and garbled text."""
     out = {}
     for key, run in sorted(series.items()):
         reading = judge(run, width, rule=rule)
