@@ -630,6 +630,31 @@ def test_roboschool_body_report_sets_each_run_beside_the_same_run_on_the_earlier
     assert "against the earlier rules" not in report.report(earlier, results=results)
 
 
+def test_the_measured_bodys_report_names_the_body_it_is_set_beside(tmp_path):
+    """The body measured against Bullet is set beside Roboschool's body as first settled (roboschool-body), not beside
+    the earlier rules: its section's heading, its words and its columns name those two bodies."""
+    import roboschool_measures
+
+    results = tmp_path / "results"
+    bullet, body = results / "roboschool-bullet_100000", results / "roboschool-body_100000"
+    fake_run(bullet, "HumanoidFlagrunHarder-v0", "table4-128", 1, 1700.0)
+    fake_run(body, "HumanoidFlagrunHarder-v0", "table4-128", 1, 364.0)
+    zero = dict.fromkeys(roboschool_measures.FIELDS, 0) | {"length": 100, "getup_steps": ""}
+    name = "HumanoidFlagrunHarder-v0__table4-128__seed1.csv"
+    roboschool_measures.write(bullet / "measures" / name, [zero | dict(seed=1, falls=2, getups=2)])
+    roboschool_measures.write(body / "measures" / name, [zero | dict(seed=1, falls=1)])
+    text = report.report(bullet, results=results)
+    assert "against the earlier rules" not in text and "gymnasium's body" not in text
+    section = text.split("## The body measured against Bullet beside Roboschool's body as first settled", 1)[1]
+    words, table = section.split("\n\n", 3)[1:3]
+    assert words.startswith("The same seed and settings on Roboschool's body as first settled from its sources (")
+    assert "in `benchmarks/results/roboschool-body_100000`" in words
+    assert table.splitlines()[0].startswith("| env | setting | seed | steps | Roboschool's body: last 100 | measured")
+    assert table.splitlines()[2:] == [
+        "| HumanoidFlagrunHarder-v0 | table4-128 | 1 | 100,000 | 364.0 | 1,700 | 0.00 | 0.00 | 0 (1) | 2 (2) |"
+    ]
+
+
 def test_a_long_runs_report_sets_its_midway_checkpoint_beside_its_end(tmp_path):
     """The 100M runs are measured at the checkpoint run.py kept past 50M as well: the report's table gives, for each,
     the score as it stood at that checkpoint's step and the measures of both checkpoints; README's line adds them."""

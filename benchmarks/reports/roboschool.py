@@ -14,8 +14,24 @@ from reports.stats import group, mean_std
 from suites import COLUMNS
 
 ORDER = 2  # beside the humanoid suite
-# A suite on Roboschool's body -> the suite of the same runs on the earlier rules, whose results the report sets beside.
-EARLIER = {"roboschool-body": "roboschool", "roboschool-bullet": "roboschool-body"}
+# A suite on a later body -> (the suite of the same runs on the body before it, whose results the report sets beside;
+# the section's heading; what the earlier body was; the two bodies' short names, for the columns).
+EARLIER = {
+    "roboschool-body": (
+        "roboschool",
+        "Roboschool's body against the earlier rules",
+        "the earlier rules (gymnasium's body, its joint springs and dampers, the height of MuJoCo's torso origin, the"
+        " mean of 13 bodies)",
+        ("earlier rules", "Roboschool's body", "earlier", "body"),
+    ),
+    "roboschool-bullet": (
+        "roboschool-body",
+        "The body measured against Bullet beside Roboschool's body as first settled",
+        "Roboschool's body as first settled from its sources (a damper of 0.5 on every joint, unit joint axes with"
+        " gymnasium's armature, the inertia of MuJoCo's geoms, MuJoCo's default joint limits and contacts)",
+        ("Roboschool's body", "measured body", "Roboschool's", "measured"),
+    ),
+}
 RULE = (
     "A run's score is the mean return of its last 100 episodes; a cell is the mean ± sample std over seeds, with the"
     " number of seeds in brackets. Rewards are Roboschool's (per step: +2 alive, progress toward the target in m/s,"
@@ -234,34 +250,35 @@ def earlier_folder(folder):
     name = suite_name(folder)
     if name not in EARLIER:
         return None
-    other = Path(folder).parent / (EARLIER[name] + Path(folder).name.removeprefix(name))
+    other = Path(folder).parent / (EARLIER[name][0] + Path(folder).name.removeprefix(name))
     return other if other.is_dir() else None
 
 
 def rules_table(folder, runs, level):
-    """Each run beside the same seed and settings on the earlier rules, at the earlier run's budget: the score and,
-    where both were measured, flags reached an episode and, for FlagrunHarder, the get-ups. A longer run here is taken
-    at the checkpoint that run.py kept at or just past that budget: its score then, and that checkpoint's measures."""
+    """Each run beside the same seed and settings on the body before its own (EARLIER), at the earlier run's budget:
+    the score and, where both were measured, flags reached an episode and, for FlagrunHarder, the get-ups. A longer run
+    here is taken at the checkpoint that run.py kept at or just past that budget: its score then, and that checkpoint's
+    measures."""
     from results import load_runs
 
     other = earlier_folder(folder)
     if other is None:
         return []
     earlier = {(r.env_id, r.variant, r.seed): r for r in load_runs(other)}
+    _, heading, before_body, (then, now, then_short, now_short) = EARLIER[suite_name(folder)]
     measures, midway = (read_measures(folder), read_measures(other)), read_midway(folder)
     lines = [
         "",
-        f"{level} Roboschool's body against the earlier rules",
+        f"{level} {heading}",
         "",
-        "The same seed and settings on the earlier rules (gymnasium's body, its joint springs and dampers, the height"
-        f" of MuJoCo's torso origin, the mean of 13 bodies), in `benchmarks/results/{other.name}`, at the earlier"
+        f"The same seed and settings on {before_body}, in `benchmarks/results/{other.name}`, at the earlier"
         " run's budget. A longer run here is taken at the checkpoint that run.py kept at or just past that step (its"
         " step in brackets): the mean return of its last 100 episodes that had ended by then, and that checkpoint's"
         " measures. Its log std, annealed over its own budget, was then at a different point of its schedule. Flags"
         " and get-ups are measured on each run's own rules.",
         "",
-        "| env | setting | seed | steps | earlier rules: last 100 | Roboschool's body: last 100 | earlier: flags an"
-        " episode | body: flags an episode | earlier: got up (times down) | body: got up (times down) |",
+        f"| env | setting | seed | steps | {then}: last 100 | {now}: last 100 | {then_short}: flags an episode |"
+        f" {now_short}: flags an episode | {then_short}: got up (times down) | {now_short}: got up (times down) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for run in runs:
