@@ -12,6 +12,7 @@ With --film, each run's film goes to results/<suite folder>/video/<run>.mp4, wit
 the measured episodes that shows what the task asks (a fall it gets up from, for FlagrunHarder; a flag reached, else a
 flag moved, for Flagrun; else its first episode), filmed from the start to its end, the frame 30 steps after that
 event (the middle of the episode if none), with the flag and the cube in sight of a camera that follows the body.
+A checkpoint that run.py kept midway (below) is filmed as well, into video/<label>/.
 
 Each run's checkpoint plays --episodes episodes (seeds 1, 2, ...) with its deterministic policy (the Gaussian's mean,
 as --eval-checkpoint plays it), and one row an episode goes to results/<suite folder>/measures/<run>.csv, which the
@@ -239,17 +240,17 @@ def main():
         return
     for job in make_grid(args.suite, total_timesteps=args.total_timesteps):
         if job.checkpoint.exists() and job.csv.exists():
-            for kept in sorted(job.run_dir.glob("checkpoint_*.pt")):  # those run.py kept midway: measures/<label>/
-                rows = play(kept, args.episodes)
-                label = kept.stem.removeprefix("checkpoint_")
+            # Those run.py kept midway go to measures/<label>/ and video/<label>/, the last checkpoint to the folders.
+            kept = [
+                (path, path.stem.removeprefix("checkpoint_")) for path in sorted(job.run_dir.glob("checkpoint_*.pt"))
+            ]
+            for checkpoint, label in [*kept, (job.checkpoint, "")]:
+                rows = play(checkpoint, args.episodes)
                 write(job.results_dir / "measures" / label / f"{job.name}.csv", rows)
-                print(f"{job.name} at {label}: {summary(rows)}", flush=True)
-            rows = play(job.checkpoint, args.episodes)
-            write(job.results_dir / "measures" / f"{job.name}.csv", rows)
-            print(f"{job.name}: {summary(rows)}", flush=True)
-            if args.film:
-                seed = film(job.checkpoint, rows, job.results_dir / "video" / f"{job.name}.mp4")
-                print(f"  filmed episode seed {seed}: {job.results_dir / 'video' / job.name}.mp4", flush=True)
+                print(f"{job.name}{' at ' + label if label else ''}: {summary(rows)}", flush=True)
+                if args.film:
+                    video = job.results_dir / "video" / label / f"{job.name}.mp4"
+                    print(f"  filmed episode seed {film(checkpoint, rows, video)}: {video}", flush=True)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, fake_run
 
 gym = pytest.importorskip("gymnasium")
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -115,3 +115,55 @@ def test_a_checkpoint_kept_midway_is_measured_beside_the_last_into_a_folder_name
     midway = (job.results_dir / "measures" / "50M" / f"{job.name}.csv").read_text().splitlines()
     last = (job.results_dir / "measures" / f"{job.name}.csv").read_text().splitlines()
     assert midway[1].endswith(f",{len('checkpoint_50M.pt')}") and last[1].endswith(f",{len('checkpoint.pt')}")
+
+
+def test_film_films_the_checkpoint_kept_midway_into_a_folder_named_by_its_label_and_the_report_shows_both(
+    tmp_path, monkeypatch
+):
+    """With --film, checkpoint_50M.pt is filmed into video/50M/ as the last checkpoint is into video/, each on its own
+    measured episodes; the report's film table and its videos list the midway film just before the last."""
+    import report
+
+    (job,) = measures.make_grid(
+        "roboschool-bullet", ["table4-128"], ["HumanoidFlagrunHarder"], [1], None, tmp_path / "r", tmp_path
+    )
+    job.run_dir.mkdir(parents=True)
+    for name in ["checkpoint.pt", "checkpoint_50M.pt"]:
+        (job.run_dir / name).write_text(name)
+    fake_run(job.results_dir, "HumanoidFlagrunHarder-v0", "table4-128", 1, 1700.0)
+    filmed = []
+
+    def play(path, episodes):
+        return [dict.fromkeys(measures.FIELDS, 0) | dict(seed=len(path.name), step=50_000, getup_steps="")]
+
+    def film(path, rows, video):
+        filmed.append((path.name, rows[0]["seed"], video.relative_to(job.results_dir).as_posix()))
+        video.parent.mkdir(parents=True, exist_ok=True)
+        video.write_bytes(b"")
+        video.with_suffix(".png").write_bytes(b"")
+        flag = "1,1" if path.name == "checkpoint.pt" else "2,1"  # flag within 8 m, and seen
+        video.with_suffix(".csv").write_text(",".join(measures.FILM_FIELDS) + f"\n10,0.3,0.2,{flag},0,0\n")
+        return rows[0]["seed"]
+
+    monkeypatch.setattr(measures, "play", play)
+    monkeypatch.setattr(measures, "film", film)
+    monkeypatch.setattr(measures, "make_grid", lambda suite, total_timesteps: [job])
+    monkeypatch.setattr(sys, "argv", ["roboschool_measures.py", "--suite", "roboschool-bullet", "--film"])
+    measures.main()
+    name = job.name
+    assert filmed == [
+        ("checkpoint_50M.pt", len("checkpoint_50M.pt"), f"video/50M/{name}.mp4"),
+        ("checkpoint.pt", len("checkpoint.pt"), f"video/{name}.mp4"),
+    ]
+    text = report.report(job.results_dir, results=tmp_path / "r")
+    row = "| HumanoidFlagrunHarder-v0, table4-128, seed1"
+    films = text.split("## What the films show", 1)[1].split("\n\n", 3)[2].splitlines()[2:]
+    assert films == [
+        row + ", at 50M | 10 | 0.30 (0.20) | 1 of 2 | 0 of 0 |",
+        row + " | 10 | 0.30 (0.20) | 1 of 1 | 0 of 0 |",
+    ]
+    videos = text.split("## The trained policy", 1)[1]
+    assert videos.index(f"[video/50M/{name}.mp4](video/50M/{name}.mp4): {name.replace('__', ', ')}, at 50M") < (
+        videos.index(f"[video/{name}.mp4](video/{name}.mp4)")
+    )
+    assert f"(video/50M/{name}.png)](video/50M/{name}.mp4)" in videos

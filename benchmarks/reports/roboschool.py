@@ -219,8 +219,10 @@ def midway_table(folder, runs, level):
 
 
 def film_table(folder, level):
-    """What each film's frames show (video/<run>.csv, by roboschool_measures.py --film), where it says."""
-    films = sorted((Path(folder) / "video").glob("*.csv"))
+    """What each film's frames show (video/<run>.csv, by roboschool_measures.py --film, and video/<label>/<run>.csv of
+    a checkpoint kept midway, just before it), where it says."""
+    video = Path(folder) / "video"
+    films = sorted([*video.glob("*.csv"), *video.glob("*/*.csv")], key=lambda path: (path.stem, path.parent == video))
     if not films:
         return []
     lines = [
@@ -241,7 +243,8 @@ def film_table(folder, level):
         flag = f"{row['flag_seen']} of {row['flag_near']}"
         cube = f"{row['cube_seen']} of {row['cube_flying']}" if "FlagrunHarder" in path.stem else "–"
         span = f"{float(row['body_span_median']):.2f} ({float(row['body_span_p5']):.2f})"
-        lines.append(f"| {path.stem.replace('__', ', ')} | {row['frames']} | {span} | {flag} | {cube} |")
+        at = f", at {path.parent.name}" if path.parent != video else ""
+        lines.append(f"| {path.stem.replace('__', ', ')}{at} | {row['frames']} | {span} | {flag} | {cube} |")
     return lines
 
 

@@ -41,15 +41,19 @@ def sources(reference, columns):
 
 
 def video_section(folder):
-    """The trained policy, filmed by ppo_continuous.py --eval-checkpoint --capture-video: a frame and the video."""
-    videos = sorted((Path(folder) / "video").glob("*.mp4"))
+    """The trained policy, filmed by ppo_continuous.py --eval-checkpoint --capture-video: a frame and the video; a film
+    of a checkpoint kept midway (video/<label>/) just before its run's last."""
+    folder = Path(folder)
+    videos = [*(folder / "video").glob("*.mp4"), *(folder / "video").glob("*/*.mp4")]
     if not videos:
         return []
     lines = ["", "## The trained policy", ""]
-    for video in videos:
+    for video in sorted(videos, key=lambda path: (path.stem, path.parent == folder / "video")):
+        rel = video.relative_to(folder).as_posix()
         if video.with_suffix(".png").exists():
-            lines += [f"[![{video.stem}](video/{video.stem}.png)](video/{video.name})", ""]
-        lines += [f"[video/{video.name}](video/{video.name}): {video.stem.replace('__', ', ')}", ""]
+            lines += [f"[![{video.stem}]({rel.removesuffix('.mp4')}.png)]({rel})", ""]
+        at = f", at {video.parent.name}" if video.parent != folder / "video" else ""
+        lines += [f"[{rel}]({rel}): {video.stem.replace('__', ', ')}{at}", ""]
     return lines
 
 
