@@ -36,7 +36,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import load_script  # noqa: E402
-from results import commit, copy_run, machine, read_run, score, versions, write_run  # noqa: E402
+from results import RESULTS, commit, copy_run, machine, read_run, score, versions, write_run  # noqa: E402
 from suites import SUITES  # noqa: E402
 
 # The packages whose versions every run's CSV records; a script adds its own as RESULTS_PACKAGES.
@@ -110,10 +110,9 @@ def _rel(path):
     return path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
 
 
-def results_folder(suite, total_timesteps):
-    """results/<suite>/ at the suite's own budget; results/<suite>_<budget>/ for any other budget."""
-    default = SUITES[suite].total_timesteps
-    if total_timesteps == default:
+def results_folder(suite, total_timesteps, variant=None):
+    """results/<suite>/ at the suite's own budget (or the variant's own, in budgets); results/<suite>_<budget>/ else."""
+    if total_timesteps == SUITES[suite].budgets.get(variant, SUITES[suite].total_timesteps):
         return suite
     return f"{suite}_{total_timesteps // 1000}k" if total_timesteps % 1000 == 0 else f"{suite}_{total_timesteps}"
 
@@ -133,10 +132,13 @@ def make_grid(suite, variants=None, envs=None, seeds=None, total_timesteps=None,
     for variant in variants or []:
         if variant not in spec.variants:
             raise ValueError(f"suite {suite} has no variant {variant!r}; its variants are {', '.join(spec.variants)}")
-    total = total_timesteps or spec.total_timesteps
-    folder = results_folder(suite, total)
-    results_dir = Path(results_root or ROOT / "benchmarks" / "results") / folder
-    runs_dir = Path(runs_root or ROOT / "benchmarks" / "runs") / folder
+    results_root, runs_root = Path(results_root or RESULTS), Path(runs_root or ROOT / "benchmarks" / "runs")
+
+    def budget(variant):  # a variant's budget, and the folders of its results and its runs
+        total = total_timesteps or spec.budgets.get(variant, spec.total_timesteps)
+        folder = results_folder(suite, total, variant)
+        return total, results_root / folder, runs_root / folder
+
     return [
         Job(
             suite,
@@ -144,9 +146,7 @@ def make_grid(suite, variants=None, envs=None, seeds=None, total_timesteps=None,
             *spec.variants[variant],
             resolve_env(env, spec.envs),
             seed,
-            total,
-            results_dir,
-            runs_dir,
+            *budget(variant),
             env_flag=spec.env_flag,
             budget_flag=spec.budget_flag,
             ranks=spec.ranks.get(variant, 1),
@@ -318,9 +318,10 @@ def start_process(cmd, root, log, run_dir):
 
 def keep_checkpoints(job, seen):
     """Copy aside, as checkpoint_<label>.pt, the first checkpoint a run saves at or past each mark of its suite's
-    keep_checkpoints, so that a long run's policy midway can be measured later. `seen`: each save is read once."""
+    keep_checkpoints short of its budget, so that a long run's policy midway can be measured later. `seen`: each save
+    is read once."""
     marks = {job.run_dir / f"checkpoint_{k}.pt": v for k, v in SUITES[job.suite].keep_checkpoints.items()}
-    todo = {path: mark for path, mark in marks.items() if not path.exists()}
+    todo = {path: mark for path, mark in marks.items() if mark < job.total_timesteps and not path.exists()}
     mtime = job.checkpoint.stat().st_mtime_ns if todo and job.checkpoint.exists() else None
     if mtime is not None and seen.get(job.name) != mtime:
         import torch
@@ -535,7 +536,7 @@ def main():
     parser.add_argument("--envs", nargs="+", help="a subset of envs, e.g. Hopper Swimmer (default: the suite's)")
     parser.add_argument("--seeds", nargs="+", type=int, help="default: the suite's (1 2 3 for the MuJoCo suites)")
     parser.add_argument(
-        "--total-timesteps", type=int, help="another budget; its results go to results/<suite>_<budget>/"
+        "--total-timesteps", type=int, help="another budget, for every run; its results go to results/<suite>_<budget>/"
     )
     parser.add_argument(
         "--workers",

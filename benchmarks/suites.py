@@ -53,6 +53,7 @@ class Suite:
     in_readme: bool = False  # whether README.md's Results block summarizes it (at its own budget)
     rules: str = ""  # the envs' rules, when a module of ours defines them: runs on other rules are not the same runs
     keep_checkpoints: dict[str, int] = field(default_factory=dict)  # label -> step: run.py keeps checkpoint_<label>.pt
+    budgets: dict[str, int] = field(default_factory=dict)  # variant -> its own total_timesteps, in the suite's folder
 
 
 SUITES = {
@@ -295,8 +296,8 @@ SUITES = {
     ),
     # The same tasks on the body measured against Bullet (benchmarks/bullet_body.py): no dampers and no armature,
     # Bullet's masses, centres and inertias, the shoulders' and elbows' long axes emulated, stiffer joint limits, on
-    # which Roboschool's own agent gets up (benchmarks/zoo_agent.py). 100M steps for seed 1 of the flagrun tasks; the
-    # forward walk at --total-timesteps 50003968.
+    # which Roboschool's own agent gets up (benchmarks/zoo_agent.py). 100M steps for the flagrun tasks, 50M for the
+    # forward walk, seed 1 first.
     "roboschool-bullet": Suite(
         {"table4": ("ppo_continuous.py", TABLE4), "table4-128": ("ppo_continuous.py", TABLE4_128)},
         ROBOSCHOOL,
@@ -309,6 +310,7 @@ SUITES = {
         report="roboschool",
         rules="the body measured against Bullet",
         keep_checkpoints={"50M": 50_003_968},
+        budgets={"table4": 50_003_968},  # 3,052 batches of 32 x 512: the forward walk's, as in the earlier rules' suite
     ),
 }
 

@@ -471,6 +471,31 @@ def test_a_long_run_keeps_the_first_checkpoint_at_or_past_each_mark_of_its_suite
     assert list(job.run_dir.glob("*.tmp")) == []
 
 
+def test_a_variant_with_a_budget_of_its_own_runs_to_it_in_the_suites_folder(tmp_path):
+    """roboschool-bullet runs the flagrun tasks to 100M and the forward walk to 50M: each variant's jobs take its own
+    budget into the suite's one folder (its report and README line), and the forward walk keeps no checkpoint at its
+    last step as a midway one; --total-timesteps puts every run at that budget in a folder of its own."""
+    jobs = run.make_grid("roboschool-bullet", seeds=[1], results_root=tmp_path / "results", runs_root=tmp_path / "runs")
+    budgets = {job.env_id.split(":")[-1]: job.total_timesteps for job in jobs}
+    assert budgets == {
+        "HumanoidForward-v0": 50_003_968,
+        "HumanoidFlagrun-v0": 100_007_936,
+        "HumanoidFlagrunHarder-v0": 100_007_936,
+    }
+    assert {job.results_dir for job in jobs} == {tmp_path / "results" / "roboschool-bullet"}
+    assert {job.run_dir.parent for job in jobs} == {tmp_path / "runs" / "roboschool-bullet"}
+    assert all(f"--total-timesteps {job.total_timesteps}" in " ".join(job.command()) for job in jobs)
+    for job in jobs:  # a save at 50,003,968: kept midway for the 100M runs, not for the 50M walk that ends there
+        job.run_dir.mkdir(parents=True)
+        torch.save({"global_step": 50_003_968}, job.checkpoint)
+        run.keep_checkpoints(job, {})
+        assert (job.run_dir / "checkpoint_50M.pt").exists() == (job.total_timesteps > 50_003_968), job.name
+    other = run.make_grid("roboschool-bullet", seeds=[1], total_timesteps=10_027_008, results_root=tmp_path)
+    assert {(job.total_timesteps, job.results_dir.name) for job in other} == {
+        (10_027_008, "roboschool-bullet_10027008")
+    }
+
+
 def test_the_rlhf_suite_keeps_its_series_and_samples_and_reports_them(tmp_path):
     rlhf = load_script("ppo_rlhf.py")
     job = run.make_grid("rlhf", ["beta0.05"], seeds=[1], results_root=tmp_path / "results", runs_root=tmp_path)[0]
