@@ -112,7 +112,7 @@ def _rel(path):
 
 def results_folder(suite, total_timesteps, variant=None):
     """results/<suite>/ at the suite's own budget (or the variant's own, in budgets); results/<suite>_<budget>/ else."""
-    if total_timesteps == SUITES[suite].budgets.get(variant, SUITES[suite].total_timesteps):
+    if total_timesteps == SUITES[suite].budget(variant):
         return suite
     return f"{suite}_{total_timesteps // 1000}k" if total_timesteps % 1000 == 0 else f"{suite}_{total_timesteps}"
 
@@ -135,7 +135,7 @@ def make_grid(suite, variants=None, envs=None, seeds=None, total_timesteps=None,
     results_root, runs_root = Path(results_root or RESULTS), Path(runs_root or ROOT / "benchmarks" / "runs")
 
     def budget(variant):  # a variant's budget, and the folders of its results and its runs
-        total = total_timesteps or spec.budgets.get(variant, spec.total_timesteps)
+        total = total_timesteps or spec.budget(variant)
         folder = results_folder(suite, total, variant)
         return total, results_root / folder, runs_root / folder
 

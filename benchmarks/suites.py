@@ -55,6 +55,10 @@ class Suite:
     keep_checkpoints: dict[str, int] = field(default_factory=dict)  # label -> step: run.py keeps checkpoint_<label>.pt
     budgets: dict[str, int] = field(default_factory=dict)  # variant -> its own total_timesteps, in the suite's folder
 
+    def budget(self, variant):
+        """The variant's own budget, else the suite's."""
+        return self.budgets.get(variant, self.total_timesteps)
+
 
 SUITES = {
     "mujoco": Suite(
