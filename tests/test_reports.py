@@ -568,7 +568,7 @@ def test_roboschool_report_and_readme_give_scores_beside_figure_4_and_what_the_p
     import roboschool_measures
 
     results = tmp_path / "results"
-    folder = results / "roboschool-body"  # the suite that README.md summarizes
+    folder = results / "roboschool-bullet"  # the suite that README.md summarizes
     fake_run(folder, "HumanoidFlagrunHarder-v0", "table4-128", 1, 1000.0)
     fake_run(folder, "HumanoidFlagrunHarder-v0", "table4-128", 2, 3000.0)
     zero = dict.fromkeys(roboschool_measures.FIELDS, 0)
@@ -591,7 +591,7 @@ def test_roboschool_report_and_readme_give_scores_beside_figure_4_and_what_the_p
     # README.md, a line of words: over 4 episodes, 1 flag; 1 get-up of 2 falls and 3 starts on the ground
     short = report.readme_block(results=results)
     assert (
-        "**`roboschool-body`: 3 runs (seeds 1, 2; 100,000 steps each)** ([report](roboschool-body/report.md)):"
+        "**`roboschool-bullet`: 3 runs (seeds 1, 2; 100,000 steps each)** ([report](roboschool-bullet/report.md)):"
         " HumanoidFlagrun-v0 (table4-128) 2,000 over the last 100 episodes (1 seed; Figure 4: about 2,500 near 100M),"
         " 1.50 flags reached an episode, fell in 3 of 4 episodes; HumanoidFlagrunHarder-v0 (table4-128) 2,000 ± 1,414"
         " over the last 100 episodes (2 seeds; Figure 4: about 3,000 near 100M), 0.25 flags reached an episode, got up"
