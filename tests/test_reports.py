@@ -581,21 +581,30 @@ def test_roboschool_report_and_readme_give_scores_beside_figure_4_and_what_the_p
     episodes = [dict(flags=2, falls=1), dict(flags=1), dict(falls=2), dict(flags=3, falls=1)]
     rows = [zero | {"seed": i + 1, "length": 100, "getup_steps": ""} | e for i, e in enumerate(episodes)]
     roboschool_measures.write(folder / "measures" / "HumanoidFlagrun-v0__table4-128__seed1.csv", rows)
+    # the forward walk: no flags and no cubes, so neither is counted (0 would read as none reached, none thrown)
+    fake_run(folder, "HumanoidForward-v0", "table4", 1, 4000.0)
+    rows = [
+        zero | {"seed": i + 1, "length": 100, "getup_steps": "", "speed_to_flag": 3} | e
+        for i, e in enumerate([dict(falls=1), dict()])
+    ]
+    roboschool_measures.write(folder / "measures" / "HumanoidForward-v0__table4__seed1.csv", rows)
     text = report.report(folder, results=results)
     # last 100: 1,000 and 3,000; all training: (50 x -10,000 + 100 x score) / 150 = -2,666.7 and -1,333.3
     row = "| HumanoidFlagrunHarder-v0 | table4-128 | 100,000 | 2,000 ± 1,414 (2) | -2,000 ± 943 (2) | 1 min, 1 min |"
     assert row + " 3,000 |" in text
     assert "| HumanoidFlagrunHarder-v0, table4-128, seed1 | 100 | 1.00 | 0.00 | 2.00 (0.00) | 1 (2) | 40 |" in text
     assert "| HumanoidFlagrunHarder-v0, table4-128, seed2 | 100 | 0.00 | 0.00 | 0.00 (0.00) | 0 (3) | – |" in text
-    assert "| HumanoidFlagrun-v0, table4-128, seed1 | 100 | 1.50 | 0.00 | 1.00 (0.00) | – | – |" in text
+    assert "| HumanoidFlagrun-v0, table4-128, seed1 | 100 | 1.50 | 0.00 | 1.00 (–) | – | – |" in text
+    assert "| HumanoidForward-v0, table4, seed1 | 100 | – | 3.00 | 0.50 (–) | – | – |" in text
     # README.md, a line of words: over 4 episodes, 1 flag; 1 get-up of 2 falls and 3 starts on the ground
     short = report.readme_block(results=results)
     assert (
-        "**`roboschool-bullet`: 3 runs (seeds 1, 2; 100,000 steps each)** ([report](roboschool-bullet/report.md)):"
+        "**`roboschool-bullet`: 4 runs (seeds 1, 2; 100,000 steps each)** ([report](roboschool-bullet/report.md)):"
         " HumanoidFlagrun-v0 (table4-128) 2,000 over the last 100 episodes (1 seed; Figure 4: about 2,500 near 100M),"
         " 1.50 flags reached an episode, fell in 3 of 4 episodes; HumanoidFlagrunHarder-v0 (table4-128) 2,000 ± 1,414"
         " over the last 100 episodes (2 seeds; Figure 4: about 3,000 near 100M), 0.25 flags reached an episode, got up"
-        " 1 of 5 times down." in short
+        " 1 of 5 times down; HumanoidForward-v0 (table4) 4,000 over the last 100 episodes (1 seed), fell in 1 of 2"
+        " episodes." in short
     )
 
 

@@ -65,6 +65,11 @@ def can_get_up(name):
     return "FlagrunHarder" in name
 
 
+def has_flags(name):
+    """The flagrun tasks run to flags; the forward walk has one target far ahead, which it never reaches."""
+    return "Flagrun" in name
+
+
 def settings(folder, runs):
     """(env, variant, its runs), in the report's order."""
     by_env = group(runs)
@@ -105,7 +110,7 @@ def summary(folder, runs, reference, results):
         part += f"; Figure 4: about {figure} near 100M)" if figure else ")"
         rows = [row for r in setting_runs for row in measures.get(run_name(r), [])]
         if rows:
-            if "Flagrun" in env:
+            if has_flags(env):
                 part += f", {flags(rows):.2f} flags reached an episode"
             if can_get_up(env):
                 getups, downs = got_up(rows)
@@ -117,7 +122,7 @@ def summary(folder, runs, reference, results):
             if at:
                 score = fmt(*mean_std([score_at(r, int(kept[run_name(r)][0]["step"])) for r in at]))
                 rows = [row for r in at for row in kept[run_name(r)]]
-                part += f" (at {label}: {score}" + (f", {flags(rows):.2f} flags" if "Flagrun" in env else "")
+                part += f" (at {label}: {score}" + (f", {flags(rows):.2f} flags" if has_flags(env) else "")
                 if can_get_up(env):
                     part += ", got up {} of {} times down".format(*got_up(rows))
                 part += ")"
@@ -159,8 +164,9 @@ def measure_cells(name, rows):
     getups, downs = got_up(rows)
     steps_up = mean("getup_steps")
     up = [f"{getups} ({downs})", f"{steps_up:.0f}" if steps_up is not None else "–"] if can_get_up(name) else ["–"] * 2
-    cells = [f"{mean('length'):,.0f}", f"{mean('flags'):.2f}", f"{mean('speed_to_flag'):.2f}"]
-    return cells + [f"{mean('falls'):.2f} ({mean('knockdowns'):.2f})", *up]
+    flag = f"{mean('flags'):.2f}" if has_flags(name) else "–"
+    knocks = f"{mean('knockdowns'):.2f}" if can_get_up(name) else "–"  # only FlagrunHarder throws cubes
+    return [f"{mean('length'):,.0f}", flag, f"{mean('speed_to_flag'):.2f}", f"{mean('falls'):.2f} ({knocks})", *up]
 
 
 def measures_table(folder, level):
@@ -297,7 +303,7 @@ def rules_table(folder, runs, level):
             at = int(rows[0]["step"]) if rows else steps
             score = f"{fmt(score_at(run, at))} (at {at:,})"
         both = [measures[1].get(name, []), rows]
-        flag_cells = [f"{flags(x):.2f}" if x else "–" for x in both]
+        flag_cells = [f"{flags(x):.2f}" if x and has_flags(name) else "–" for x in both]
         ups = ["{} ({})".format(*got_up(x)) if x and can_get_up(name) else "–" for x in both]
         cells = [run.env_id, run.variant, str(run.seed), f"{steps:,}", fmt(before.score), score, *flag_cells, *ups]
         lines.append("| " + " | ".join(cells) + " |")
